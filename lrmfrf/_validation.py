@@ -1,0 +1,218 @@
+"""Signal and parameter checks, in one place.
+
+Every check raises a ``ValueError`` or ``TypeError`` whose message names the
+problem, what was received and what to do. Inputs are never modified: each
+check returns a new array (``np.array(..., copy=True)``) when it converts.
+"""
+
+from __future__ import annotations
+
+import numbers
+from collections.abc import Sequence
+
+import numpy as np
+
+__all__ = [
+    "check_downsampling_factor",
+    "check_signal",
+    "check_records",
+    "check_record_stack",
+    "check_local_degrees",
+    "check_nonnegative_int",
+]
+
+
+def check_nonnegative_int(value, name: str, *, minimum: int = 0) -> int:
+    """Return ``value`` as an int, or raise if it is not an integer >= minimum."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        if isinstance(value, numbers.Real) and float(value).is_integer():
+            value = int(value)
+        else:
+            raise TypeError(
+                f"`{name}` must be an integer >= {minimum}. Got {value!r} "
+                f"of type {type(value).__name__} instead."
+            )
+    value = int(value)
+    if value < minimum:
+        raise ValueError(
+            f"`{name}` must be an integer >= {minimum}. Got {value} instead. "
+            f"Use a value of at least {minimum}."
+        )
+    return value
+
+
+def check_downsampling_factor(F) -> int:
+    """Return the downsampling factor as a positive int.
+
+    ``3`` and ``3.0`` are accepted; ``2.5``, ``0``, ``True`` and strings are not.
+    """
+    if isinstance(F, bool) or not isinstance(F, numbers.Real):
+        raise TypeError(
+            f"The downsampling factor F must be a positive integer. Got {F!r} of "
+            f"type {type(F).__name__}. Pass the ratio of the slow to the fast "
+            "sample time, e.g. F=3."
+        )
+    if not float(F).is_integer() or F < 1:
+        raise ValueError(
+            f"The downsampling factor F must be a positive integer. Got {F!r}. "
+            "Pass the integer ratio of the slow to the fast sample time, e.g. F=3."
+        )
+    return int(F)
+
+
+def check_signal(x, name: str) -> np.ndarray:
+    """Return a real, finite, non-empty 1-D float copy of ``x``."""
+    try:
+        arr = np.array(x, copy=True)
+    except Exception as exc:  # pragma: no cover - numpy raises many types
+        raise TypeError(f"`{name}` could not be converted to an array: {exc}") from exc
+    if arr.dtype == object or not (
+        np.issubdtype(arr.dtype, np.number) or arr.dtype == bool
+    ):
+        raise TypeError(
+            f"`{name}` must be a numeric array. Got dtype {arr.dtype}. "
+            "Convert the signal to floats (check for text cells in the data)."
+        )
+    if np.iscomplexobj(arr):
+        raise TypeError(
+            f"`{name}` must be a real time-domain signal. Got a complex array. "
+            "Pass the measured time samples, not their DFT."
+        )
+    if arr.ndim != 1:
+        raise ValueError(
+            f"`{name}` must be 1-D with shape (n_samples,). Got shape {arr.shape}. "
+            "Pass one record per call or a 2-D array of experiments to `fit`."
+        )
+    if arr.size == 0:
+        raise ValueError(f"`{name}` is empty. Pass a record with samples.")
+    arr = arr.astype(float, copy=False)
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        first = int(np.flatnonzero(bad)[0])
+        raise ValueError(
+            f"`{name}` contains {int(bad.sum())} non-finite value(s) (NaN or inf), "
+            f"the first at index {first}. Remove or interpolate them before fitting."
+        )
+    return arr
+
+
+def _as_record_list(x, name: str) -> list:
+    if isinstance(x, np.ndarray):
+        if x.ndim == 2:
+            return [x[p] for p in range(x.shape[0])]
+        return [x]
+    if isinstance(x, Sequence) and not isinstance(x, (str, bytes)) and len(x) > 0:
+        first = x[0]
+        if isinstance(first, (Sequence, np.ndarray)) and not isinstance(
+            first, (str, bytes)
+        ):
+            return list(x)
+    return [x]
+
+
+def check_record_stack(x, name: str) -> np.ndarray:
+    """Validate one record or a stack of equal-length records.
+
+    Returns
+    -------
+    ndarray of shape (n_experiments, n_samples)
+    """
+    rows = _as_record_list(x, name)
+    several = len(rows) > 1
+    checked = [
+        check_signal(row, f"{name}[{p}]" if several else name)
+        for p, row in enumerate(rows)
+    ]
+    lengths = sorted({len(row) for row in checked})
+    if len(lengths) > 1:
+        raise ValueError(
+            f"All records of `{name}` must have equal length. Got lengths "
+            f"{lengths}. Trim the records to a common length."
+        )
+    return np.vstack(checked)
+
+
+def check_records(u_h, y_l, F) -> tuple[np.ndarray, np.ndarray, int]:
+    """Validate one or several experiments.
+
+    Parameters
+    ----------
+    u_h : array-like of shape (n_samples,) or (n_experiments, n_samples), or list
+        Fast-rate input record(s).
+    y_l : array-like of shape (n_slow,) or (n_experiments, n_slow), or list
+        Slow-rate output record(s), ``n_samples == F * n_slow``.
+    F : int
+        Downsampling factor.
+
+    Returns
+    -------
+    u : ndarray of shape (n_experiments, n_samples)
+    y : ndarray of shape (n_experiments, n_slow)
+    F : int
+    """
+    F = check_downsampling_factor(F)
+    n_u = len(_as_record_list(u_h, "u_h"))
+    n_y = len(_as_record_list(y_l, "y_l"))
+    if n_u != n_y:
+        raise ValueError(
+            f"u_h holds {n_u} experiment(s) but y_l holds {n_y}. "
+            "Pass one slow output record per input record."
+        )
+    u = check_record_stack(u_h, "u_h")
+    y = check_record_stack(y_l, "y_l")
+    N, M = u.shape[1], y.shape[1]
+    if N != F * M:
+        raise ValueError(
+            f"The fast input has N={N} samples and the slow output M={M}, but "
+            f"N must equal F*M = {F}*{M} = {F * M}. Check F or trim u_h to "
+            f"{F * M} samples (y_l(m) must be y_h(m*F))."
+        )
+    return u, y, F
+
+
+def check_local_degrees(
+    *,
+    half_window: int,
+    num_degree: int,
+    transient_degree: int,
+    den_degree: int,
+    F: int,
+    n_slow: int,
+    n_experiments: int = 1,
+) -> dict:
+    """Check that the local problems are well posed and return the degrees.
+
+    The conditions are eq. (uniqueConditions) of the paper, generalised to
+    ``P`` experiments that share the system parameters and each have their own
+    transient: ``P (2n+1) >= (R_g+1) F + P (R_t+1) + R_e`` and ``2n+1 <= M``.
+    """
+    n = check_nonnegative_int(half_window, "half_window", minimum=1)
+    Rg = check_nonnegative_int(num_degree, "num_degree")
+    Rt = check_nonnegative_int(transient_degree, "transient_degree")
+    Re = check_nonnegative_int(den_degree, "den_degree")
+    window = 2 * n + 1
+    if window > n_slow:
+        raise ValueError(
+            f"The window 2*half_window+1 = {window} slow bins is wider than the "
+            f"slow record (M={n_slow} bins). Reduce half_window to at most "
+            f"{(n_slow - 1) // 2} or measure a longer record."
+        )
+    P = n_experiments
+    n_params = (Rg + 1) * F + P * (Rt + 1) + Re
+    n_equations = P * window
+    if n_equations < n_params:
+        need_n = int(np.ceil(((n_params / P) - 1) / 2))
+        raise ValueError(
+            f"Too few equations for the parameters: the window gives {n_equations} "
+            f"equations but the local model has (num_degree+1)*F + "
+            f"(transient_degree+1) + den_degree = ({Rg}+1)*{F} + "
+            f"{P}*({Rt}+1) + {Re} = {n_params} parameters. Increase half_window "
+            f"to at least {need_n} or lower num_degree, transient_degree or "
+            "den_degree."
+        )
+    return {
+        "half_window": n,
+        "num_degree": Rg,
+        "transient_degree": Rt,
+        "den_degree": Re,
+    }

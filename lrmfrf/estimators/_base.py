@@ -1,0 +1,114 @@
+"""Shared behaviour of the FRF estimators: fitted checks, predict, score, FRD."""
+
+from __future__ import annotations
+
+import numpy as np
+from sklearn.base import BaseEstimator
+from sklearn.exceptions import NotFittedError
+
+from .._validation import check_record_stack, check_records
+
+__all__ = ["FRFEstimatorMixin"]
+
+
+class FRFEstimatorMixin:
+    """Accessors common to every estimator that exposes ``frequencies_``/``frf_``.
+
+    Subclasses implement ``fit`` and ``_fast_frf(n_samples)`` (the FRF on the
+    full fast DFT grid ``k = 0..N-1``).
+    """
+
+    def _check_fitted(self) -> None:
+        if not hasattr(self, "frf_"):
+            raise NotFittedError(
+                f"This {type(self).__name__} instance is not fitted yet. Call "
+                "`fit(u_h, y_l, F)` before using this method."
+            )
+
+    def _fast_frf(self, n_samples: int) -> np.ndarray:  # pragma: no cover
+        raise NotImplementedError
+
+    def predict(self, u_h) -> np.ndarray:
+        """Steady-state slow-rate output predicted by the FRF.
+
+        ``Y_h(k) = G(k) U_h(k)`` on the fast DFT grid, ``y_l = y_h[::F]``
+        (periodic steady state: no transient).
+
+        Parameters
+        ----------
+        u_h : array-like of shape (N,) or (P, N)
+            Fast input of the same length as the training records.
+
+        Returns
+        -------
+        ndarray of shape (M,) or (P, M)
+        """
+        self._check_fitted()
+        F = self.downsampling_factor_
+        single = np.ndim(u_h) == 1
+        u = check_record_stack(u_h, "u_h")
+        if u.shape[1] != self.n_samples_:
+            raise ValueError(
+                f"predict needs an input of the training length N="
+                f"{self.n_samples_}. Got {u.shape[1]} samples. The FRF is only "
+                "known on the training DFT grid: pass records of that length."
+            )
+        U = np.fft.fft(u, axis=1)
+        G = self._fast_frf(self.n_samples_)
+        with np.errstate(invalid="ignore"):
+            Yh = np.where(U == 0, 0.0, G * U)
+        if np.isnan(Yh).any():
+            raise ValueError(
+                "The FRF is invalid (NaN) at frequencies this input excites "
+                "(see `valid_`). Refit with an input that excites every band, or "
+                "predict with an input that has no energy at the invalid bins."
+            )
+        y = np.fft.ifft(Yh, axis=1).real[:, ::F]
+        return y[0] if single else y
+
+    def score(self, u_h, y_l) -> float:
+        """R^2 of the predicted slow output against ``y_l`` (all experiments).
+
+        Parameters
+        ----------
+        u_h : array-like of shape (N,) or (P, N)
+        y_l : array-like of shape (M,) or (P, M)
+
+        Returns
+        -------
+        float
+        """
+        self._check_fitted()
+        u, y, _ = check_records(u_h, y_l, self.downsampling_factor_)
+        prediction = self.predict(u)
+        ss_res = np.sum((y - prediction) ** 2)
+        ss_tot = np.sum((y - y.mean()) ** 2)
+        if ss_tot == 0.0:
+            return 0.0 if ss_res > 0 else 1.0
+        return float(1.0 - ss_res / ss_tot)
+
+    def to_frd(self):
+        """The valid bins of the FRF as a ``control.FrequencyResponseData``.
+
+        Returns
+        -------
+        control.FrequencyResponseData
+            ``omega`` in rad/s, ``dt`` the fast sample time in seconds. Bins
+            with ``valid_ == False`` are left out.
+        """
+        import control
+
+        self._check_fitted()
+        keep = self.valid_
+        return control.FrequencyResponseData(
+            self.frf_[keep],
+            2 * np.pi * self.frequencies_[keep],
+            dt=self.sample_time_,
+        )
+
+
+class _BaseFRFEstimator(FRFEstimatorMixin, BaseEstimator):
+    """BaseEstimator with the FRF accessors."""
+
+    def _more_tags(self):  # scikit-learn < 1.6
+        return {"requires_y": True, "non_deterministic": False}

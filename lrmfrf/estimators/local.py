@@ -1,0 +1,274 @@
+"""Local rational (LRM) and local polynomial (LPM) estimators beyond Nyquist.
+
+Both are thin shells over :func:`lrmfrf.local_models.fit_local_models`: LPM is
+the same computation with ``den_degree = 0``.
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+
+import numpy as np
+
+from .._validation import (
+    check_local_degrees,
+    check_nonnegative_int,
+    check_records,
+)
+from ..exceptions import IdentifiabilityWarning
+from ..local_models import fit_local_models, one_sided_fast_grid
+from ..windows import LocalModelLayout
+from ._base import _BaseFRFEstimator
+
+__all__ = ["LRMBeyondNyquist", "LPMBeyondNyquist"]
+
+logger = logging.getLogger(__name__)
+
+
+def _check_sample_time(sample_time) -> float:
+    try:
+        value = float(sample_time)
+    except (TypeError, ValueError) as exc:
+        raise TypeError(
+            f"`sample_time` must be a positive number of seconds. Got "
+            f"{sample_time!r}."
+        ) from exc
+    if not np.isfinite(value) or value <= 0:
+        raise ValueError(
+            f"`sample_time` must be a positive, finite number of seconds (the fast "
+            f"sample time). Got {sample_time!r}."
+        )
+    return value
+
+
+class _LocalModelEstimator(_BaseFRFEstimator):
+    """Common ``fit`` of the local-model estimators (LRM, LPM)."""
+
+    def _local_degrees(self) -> dict:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _refine(self, U, Y, layout, local_fit):
+        """Hook for iterative refinement; the closed form by default."""
+        return local_fit
+
+    def fit(self, u_h, y_l, F, *, sample_time: float = 1.0):
+        """Estimate the fast-rate FRF from a fast input and a slow output.
+
+        Parameters
+        ----------
+        u_h : array-like of shape (N,) or (P, N), or list of P records
+            Fast-rate input(s), real.
+        y_l : array-like of shape (M,) or (P, M), or list of P records
+            Slow-rate output(s), real, ``y_l(m) = y_h(m F) + noise``.
+        F : int
+            Downsampling factor, ``N = F M``.
+        sample_time : float, default=1.0
+            Fast sample time in seconds (sets ``frequencies_`` in Hz).
+
+        Returns
+        -------
+        self
+        """
+        u, y, F = check_records(u_h, y_l, F)
+        sample_time = _check_sample_time(sample_time)
+        P, N = u.shape
+        M = y.shape[1]
+        degrees = check_local_degrees(
+            **self._local_degrees(), F=F, n_slow=M, n_experiments=P
+        )
+        layout = LocalModelLayout(F=F, n_experiments=P, **degrees)
+        U = np.fft.fft(u, axis=1)
+        Y = np.fft.fft(y, axis=1)
+        local_fit = fit_local_models(U, Y, layout)
+        local_fit = self._refine(U, Y, layout, local_fit)
+        self._set_fitted(local_fit, layout, N, M, F, P, sample_time)
+        return self
+
+    def _set_fitted(self, local_fit, layout, N, M, F, P, sample_time) -> None:
+        n_bad = int(np.count_nonzero(~local_fit.well_posed))
+        if n_bad:
+            n_unexcited = int(np.count_nonzero(~local_fit.excited))
+            msg = (
+                f"{n_bad} of {local_fit.well_posed.size} slow bins are not "
+                "identifiable: their local problem is rank-deficient "
+                f"({n_unexcited} of them because the input has no energy in some "
+                "aliased band of the window). Their FRF is NaN and valid_ is "
+                "False. Use an input that excites every band, e.g. a random-phase "
+                "multisine (lrmfrf.signals.multisine)."
+            )
+            warnings.warn(msg, IdentifiabilityWarning, stacklevel=3)
+        if layout.dof == 0:
+            warnings.warn(
+                "The local problems have zero residual degrees of freedom: the "
+                "noise variance and frf_std_ are NaN. Increase half_window.",
+                UserWarning,
+                stacklevel=3,
+            )
+        self.n_samples_ = N
+        self.n_slow_ = M
+        self.n_experiments_ = P
+        self.downsampling_factor_ = F
+        self.sample_time_ = sample_time
+        self.n_params_ = layout.n_params
+        self.dof_ = layout.dof
+        self.layout_ = layout
+        self.frequencies_ = np.arange(N // 2 + 1) / (N * sample_time)
+        self.frf_ = one_sided_fast_grid(local_fit.system, N, F, conj=True)
+        self.frf_std_ = np.sqrt(
+            one_sided_fast_grid(local_fit.system_var, N, F, conj=False)
+        )
+        self.valid_ = one_sided_fast_grid(
+            np.repeat(local_fit.well_posed[:, None], F, axis=1), N, F, conj=False
+        )
+        self.slow_frequencies_ = local_fit.slow_bins / (N * sample_time)
+        self.noise_variance_ = local_fit.noise_var
+        transient = local_fit.transient.T
+        self.transient_ = transient[0] if P == 1 else transient
+        self.local_fit_ = local_fit
+        logger.debug(
+            "%s fitted: N=%d, F=%d, P=%d, %d params, %d dof, %d invalid bins",
+            type(self).__name__, N, F, P, layout.n_params, layout.dof, n_bad,
+        )
+
+    def _fast_frf(self, n_samples: int) -> np.ndarray:
+        half = self.frf_
+        mirror = np.conj(half[1 : n_samples - n_samples // 2][::-1])
+        return np.concatenate([half, mirror])
+
+
+class LRMBeyondNyquist(_LocalModelEstimator):
+    """Local rational modelling beyond the Nyquist frequency (closed form).
+
+    Identifies the fast-rate FRF ``G(k)``, ``k = 0..N//2``, from a fast input
+    and a slow output downsampled by ``F``, with local rational models over
+    the ``F`` aliased bands: eqs. (Kvector), (linearSolution) and
+    (linearPlantSolution) of van Haren et al., with variance from Lemma 2.
+    ``F = 1`` is the single-rate LRM of McKelvey and Guerin (2012).
+
+    Parameters
+    ----------
+    half_window : int, default=18
+        ``n``: each local window holds ``2n+1`` slow bins.
+    num_degree : int, default=4
+        ``R_g``: degree of the system numerators.
+    transient_degree : int, default=4
+        ``R_t``: degree of the transient numerator.
+    den_degree : int, default=7
+        ``R_e``: degree of the common denominator.
+    sk_iterations : int, default=0
+        Sanathanan-Koerner iterations after the closed form.
+    lm_iterations : int, default=0
+        Levenberg-Marquardt iterations after SK.
+
+    Attributes
+    ----------
+    frequencies_ : ndarray of shape (N//2+1,)
+        Fast DFT grid in Hz.
+    frf_ : ndarray of shape (N//2+1,), complex
+    frf_std_ : ndarray of shape (N//2+1,)
+        Standard deviation of ``frf_`` (Lemma 2).
+    valid_ : ndarray of shape (N//2+1,), bool
+        False where the local problem was not well posed (``frf_`` is NaN).
+    slow_frequencies_ : ndarray of shape (M//2+1,)
+        Slow window centres in Hz.
+    noise_variance_ : ndarray of shape (M//2+1,)
+        Estimated variance of the slow output noise DFT ``V_l(k)``.
+    transient_ : ndarray of shape (M//2+1,) or (P, M//2+1), complex
+        Transient term in the slow output DFT at each window centre.
+    n_params_ : int
+        Complex parameters per local problem.
+    dof_ : int
+        Residual degrees of freedom per local problem.
+
+    References
+    ----------
+    M. van Haren, L. Blanken, K. Classens, T. Oomen, "Local Rational Modeling
+    for Identification Beyond the Nyquist Frequency: Applied to a Prototype
+    Wafer Stage", 2024.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from scipy.signal import lfilter
+    >>> from lrmfrf import LRMBeyondNyquist
+    >>> from lrmfrf.signals import multisine
+    >>> u = multisine(1200, rng=0)
+    >>> y = lfilter([0.2, 0.1], [1.0, -0.5], u)[::3]
+    >>> est = LRMBeyondNyquist(den_degree=2).fit(u, y, F=3)
+    >>> est.frf_.shape
+    (601,)
+    """
+
+    def __init__(
+        self,
+        *,
+        half_window: int = 18,
+        num_degree: int = 4,
+        transient_degree: int = 4,
+        den_degree: int = 7,
+        sk_iterations: int = 0,
+        lm_iterations: int = 0,
+    ):
+        self.half_window = half_window
+        self.num_degree = num_degree
+        self.transient_degree = transient_degree
+        self.den_degree = den_degree
+        self.sk_iterations = sk_iterations
+        self.lm_iterations = lm_iterations
+
+    def _local_degrees(self) -> dict:
+        return {
+            "half_window": self.half_window,
+            "num_degree": self.num_degree,
+            "transient_degree": self.transient_degree,
+            "den_degree": self.den_degree,
+        }
+
+    def _refine(self, U, Y, layout, local_fit):
+        sk = check_nonnegative_int(self.sk_iterations, "sk_iterations")
+        lm = check_nonnegative_int(self.lm_iterations, "lm_iterations")
+        if sk or lm:
+            raise NotImplementedError(
+                "Iterative refinement (sk_iterations, lm_iterations > 0) is not "
+                "available yet. Use sk_iterations=0 and lm_iterations=0."
+            )
+        return local_fit
+
+
+class LPMBeyondNyquist(_LocalModelEstimator):
+    """Local polynomial modelling beyond the Nyquist frequency.
+
+    The same computation as :class:`LRMBeyondNyquist` with ``den_degree=0``,
+    ``num_degree=degree`` and ``transient_degree=transient_degree or degree``
+    (van Haren et al., 2023; ``F = 1`` is the LPM of Pintelon et al.).
+
+    Parameters
+    ----------
+    half_window : int, default=18
+        ``n``: each local window holds ``2n+1`` slow bins.
+    degree : int, default=2
+        Degree of the local system polynomials.
+    transient_degree : int or None, default=None
+        Degree of the transient polynomial; ``None`` uses ``degree``.
+
+    Attributes
+    ----------
+    See :class:`LRMBeyondNyquist`. For LPM the residual is usually dominated by
+    model error, so ``frf_std_`` is then an RMS error estimate rather than a
+    noise standard deviation.
+    """
+
+    def __init__(self, *, half_window: int = 18, degree: int = 2, transient_degree=None):
+        self.half_window = half_window
+        self.degree = degree
+        self.transient_degree = transient_degree
+
+    def _local_degrees(self) -> dict:
+        transient = self.degree if self.transient_degree is None else self.transient_degree
+        return {
+            "half_window": self.half_window,
+            "num_degree": self.degree,
+            "transient_degree": transient,
+            "den_degree": 0,
+        }

@@ -1,0 +1,205 @@
+"""The local-model kernel shared by LRM and LPM: all windows, in chunks.
+
+``fit_local_models`` takes the DFTs of the records, builds the regressor of
+eq. (Kvector) for a chunk of slow bins at a time (bounded memory), solves the
+closed form eq. (linearSolution), and returns the FRF in the ``F`` aliased
+bands with its Lemma 2 variance. ``one_sided_fast_grid`` maps the slow-bin
+results to the fast grid ``k = 0..N//2`` using conjugate symmetry.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .solvers import lemma2_variance, noise_variance, solve_local_least_squares
+from .windows import LocalModelLayout, local_regressor
+
+__all__ = [
+    "LocalModelFit",
+    "fit_local_models",
+    "half_slow_bins",
+    "one_sided_fast_grid",
+    "window_excitation",
+]
+
+#: Default bound on the bytes of one chunk's regressor.
+CHUNK_BYTES = 2**26
+
+#: A window whose input energy in some band is below this fraction of the
+#: average is declared not excited (exact zeros up to DFT round-off).
+EXCITATION_TOL = 1e-12
+
+
+@dataclass
+class LocalModelFit:
+    """Per-slow-bin results of the local models.
+
+    Attributes
+    ----------
+    slow_bins : ndarray of shape (B,)
+    theta : ndarray of shape (B, n_params), complex
+    system : ndarray of shape (B, F), complex
+        ``G(k+fM)`` for each window centre ``k`` and band ``f``.
+    system_var : ndarray of shape (B, F), float
+    transient : ndarray of shape (B, P), complex
+        Transient value at the window centre (in units of ``Y_l``).
+    noise_var : ndarray of shape (B,), float
+    rss : ndarray of shape (B,), float
+    well_posed : ndarray of shape (B,), bool
+    excited : ndarray of shape (B,), bool
+    leverage : ndarray of shape (B, n_equations) or None
+    """
+
+    layout: LocalModelLayout
+    slow_bins: np.ndarray
+    theta: np.ndarray
+    system: np.ndarray
+    system_var: np.ndarray
+    transient: np.ndarray
+    noise_var: np.ndarray
+    rss: np.ndarray
+    well_posed: np.ndarray
+    excited: np.ndarray
+    leverage: np.ndarray | None = None
+
+
+def half_slow_bins(n_slow: int) -> np.ndarray:
+    """Slow bins ``0..M//2``: enough for real signals (conjugate symmetry)."""
+    return np.arange(n_slow // 2 + 1)
+
+
+def window_excitation(U: np.ndarray, slow_bins: np.ndarray, layout) -> np.ndarray:
+    """Relative input energy of each band in each window.
+
+    Returns
+    -------
+    ndarray of shape (B, F)
+        ``sum_{p,r} |U_p(k+r+fM)|^2`` divided by its average over all windows.
+    """
+    P, N = U.shape
+    M = N // layout.F
+    energy = np.sum(np.abs(U) ** 2, axis=0)
+    n = layout.half_window
+    padded = np.concatenate([energy[N - n :], energy, energy[:n]])
+    csum = np.concatenate([[0.0], np.cumsum(padded)])
+    moving = csum[layout.window :] - csum[: -layout.window]  # (N,) centred sums
+    reference = layout.window * energy.mean()
+    if reference == 0.0:
+        return np.zeros((slow_bins.size, layout.F))
+    idx = (slow_bins[:, None] + M * np.arange(layout.F)) % N
+    return moving[idx] / reference
+
+
+def fit_local_models(
+    U: np.ndarray,
+    Y: np.ndarray,
+    layout: LocalModelLayout,
+    *,
+    slow_bins: np.ndarray | None = None,
+    chunk_size: int | None = None,
+    rank_tol: float | None = None,
+    return_leverage: bool = False,
+) -> LocalModelFit:
+    """Closed-form local rational models beyond the Nyquist frequency.
+
+    Parameters
+    ----------
+    U : ndarray of shape (P, N), complex
+        Unnormalised DFT (``np.fft.fft``) of the fast inputs.
+    Y : ndarray of shape (P, M), complex
+        Unnormalised DFT of the slow outputs, ``N = F M``.
+    layout : LocalModelLayout
+    slow_bins : ndarray of shape (B,), optional
+        Window centres; default ``0..M//2``.
+    chunk_size : int, optional
+        Windows solved at once; default bounds a chunk's regressor to 64 MiB.
+    rank_tol : float, optional
+        Passed to :func:`lrmfrf.solvers.solve_local_least_squares`.
+    return_leverage : bool, default=False
+        Keep the hat-matrix diagonals (for leave-one-out criteria).
+
+    Returns
+    -------
+    LocalModelFit
+    """
+    F = layout.F
+    M = Y.shape[1]
+    if slow_bins is None:
+        slow_bins = half_slow_bins(M)
+    slow_bins = np.asarray(slow_bins, dtype=int)
+    if chunk_size is None:
+        per_window = 16 * layout.n_equations * layout.n_params
+        chunk_size = max(1, CHUNK_BYTES // per_window)
+    kwargs = {"return_leverage": return_leverage}
+    if rank_tol is not None:
+        kwargs["rank_tol"] = rank_tol
+
+    parts = []
+    for start in range(0, slow_bins.size, chunk_size):
+        bins = slow_bins[start : start + chunk_size]
+        A, b = local_regressor(U, Y, bins, layout)
+        parts.append(solve_local_least_squares(A, b, **kwargs))
+
+    theta = np.concatenate([s.theta for s in parts])
+    gram_inv_diag = np.concatenate([s.gram_inv_diag for s in parts])
+    rss = np.concatenate([s.rss for s in parts])
+    excited = (window_excitation(U, slow_bins, layout) > EXCITATION_TOL).all(axis=1)
+    well_posed = np.concatenate([s.well_posed for s in parts]) & excited
+    leverage = (
+        np.concatenate([s.leverage for s in parts]) if return_leverage else None
+    )
+    noise_var = noise_variance(rss, layout.dof)
+    system = F * theta[:, :F]
+    system_var = lemma2_variance(gram_inv_diag[:, :F], noise_var, F)
+    transient_cols = [layout.transient_column(p) for p in range(layout.n_experiments)]
+    transient = theta[:, transient_cols]
+    bad = ~well_posed
+    for arr in (theta, system, system_var, transient, noise_var, rss):
+        arr[bad] = np.nan
+    return LocalModelFit(
+        layout=layout,
+        slow_bins=slow_bins,
+        theta=theta,
+        system=system,
+        system_var=system_var,
+        transient=transient,
+        noise_var=noise_var,
+        rss=rss,
+        well_posed=well_posed,
+        excited=excited,
+        leverage=leverage,
+    )
+
+
+def one_sided_fast_grid(values: np.ndarray, n_samples: int, F: int, *, conj: bool):
+    """Map per-slow-bin band values (slow bins ``0..M//2``) to fast bins 0..N//2.
+
+    Fast bin ``j = k + fM`` with ``k <= M//2`` is ``values[k, f]``; otherwise it
+    is the mirror ``N - j = (M-k) + (F-1-f) M`` of a solved bin, and
+    ``G(j) = conj(G(N-j))`` (``conj=True``, for the FRF) or the same value
+    (``conj=False``, for variances).
+
+    Parameters
+    ----------
+    values : ndarray of shape (M//2+1, F)
+    n_samples : int
+        ``N``.
+    F : int
+    conj : bool
+
+    Returns
+    -------
+    ndarray of shape (N//2+1,)
+    """
+    M = n_samples // F
+    j = np.arange(n_samples // 2 + 1)
+    k, f = j % M, j // M
+    mirrored = k > M // 2
+    k_src = np.where(mirrored, M - k, k)
+    f_src = np.where(mirrored, F - 1 - f, f)
+    out = values[k_src, f_src]
+    if conj:
+        out = np.where(mirrored, np.conj(out), out)
+    return out
