@@ -259,13 +259,17 @@ class LPMBeyondNyquist(_LocalModelEstimator):
     noise standard deviation.
     """
 
-    def __init__(self, *, half_window: int = 18, degree: int = 2, transient_degree=None):
+    def __init__(
+        self, *, half_window: int = 18, degree: int = 2, transient_degree=None
+    ):
         self.half_window = half_window
         self.degree = degree
         self.transient_degree = transient_degree
 
     def _local_degrees(self) -> dict:
-        transient = self.degree if self.transient_degree is None else self.transient_degree
+        transient = self.transient_degree
+        if transient is None:
+            transient = self.degree
         return {
             "half_window": self.half_window,
             "num_degree": self.degree,

@@ -1,0 +1,168 @@
+"""Known answers of the core: in-class exactness, F = 1 textbook LRM/LPM,
+batched vs per-bin solves, LPM = LRM(den_degree=0), aliasing, symmetry."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import frf_of, in_class_data, resonant_system, simulate_resonant
+from scipy.signal import lfilter
+
+from lrmfrf import LPMBeyondNyquist, LRMBeyondNyquist, multisine
+from lrmfrf.local_models import fit_local_models
+from lrmfrf.windows import LocalModelLayout
+
+
+@pytest.mark.parametrize("F", [1, 2, 3, 5])
+@pytest.mark.parametrize("P", [1, 2])
+def test_in_class_data_recovered_exactly(F, P):
+    rng = np.random.default_rng(100 + 10 * F + P)
+    layout = LocalModelLayout(
+        F=F, half_window=12, num_degree=2, transient_degree=2, den_degree=3,
+        n_experiments=P,
+    )
+    assert layout.dof > 0
+    u, y, centres, G = in_class_data(layout, n_slow=200, rng=rng)
+    fit = fit_local_models(
+        np.fft.fft(u, axis=1), np.fft.fft(y, axis=1), layout, slow_bins=centres
+    )
+    rel = np.abs(fit.system - G) / np.abs(G)
+    assert fit.well_posed.all()
+    assert rel.max() <= 1e-9
+    # In class and noise-free: the residual is zero up to round-off.
+    assert np.all(fit.rss <= 1e-18 * np.sum(np.abs(np.fft.fft(y)) ** 2))
+
+
+def test_in_class_through_the_estimator_at_paper_degrees():
+    """Paper degrees (4, 4, 7, n = 18), F = 3: the public estimator is exact."""
+    rng = np.random.default_rng(7)
+    layout = LocalModelLayout(F=3, half_window=18, num_degree=4,
+                              transient_degree=4, den_degree=7)
+    u, y, centres, G = in_class_data(layout, n_slow=400, rng=rng)
+    est = LRMBeyondNyquist().fit(u[0], y[0], F=3)
+    N, M = u.shape[1], y.shape[1]
+    got = est.local_fit_.system[centres]
+    assert np.max(np.abs(got - G) / np.abs(G)) <= 1e-9
+    # The same values land on the one-sided fast grid (or its mirror).
+    for i, k in enumerate(centres):
+        for f in range(3):
+            j = k + f * M
+            value = est.frf_[j] if j <= N // 2 else np.conj(est.frf_[N - j])
+            assert abs(value - G[i, f]) <= 1e-9 * abs(G[i, f])
+
+
+def _textbook_single_rate(U, Y, k, n, Rn, Rt, Rd):
+    """McKelvey/Pintelon single-rate local model at bin k, raw r, lstsq."""
+    rows, rhs = [], []
+    N = U.size
+    for r in range(-n, n + 1):
+        u_r, y_r = U[(k + r) % N], Y[(k + r) % N]
+        row = [u_r * r**s for s in range(Rn + 1)]
+        row += [r**s for s in range(Rt + 1)]
+        row += [-y_r * r**s for s in range(1, Rd + 1)]
+        rows.append(row)
+        rhs.append(y_r)
+    theta = np.linalg.lstsq(np.array(rows), np.array(rhs), rcond=None)[0]
+    return theta[0]
+
+
+@pytest.mark.parametrize("den_degree", [0, 2])
+def test_F1_is_textbook_single_rate_model(den_degree):
+    rng = np.random.default_rng(3)
+    b, a = resonant_system()
+    u = multisine(600, rng=rng)
+    y = lfilter(b, a, u) + 1e-3 * rng.standard_normal(600)
+    n, Rn, Rt = 8, 2, 2
+    if den_degree:
+        est = LRMBeyondNyquist(half_window=n, num_degree=Rn, transient_degree=Rt,
+                               den_degree=den_degree)
+    else:
+        est = LPMBeyondNyquist(half_window=n, degree=Rn)
+    est.fit(u, y, F=1)
+    U, Y = np.fft.fft(u), np.fft.fft(y)
+    bins = np.arange(0, 301, 7)
+    ref = np.array([_textbook_single_rate(U, Y, k, n, Rn, Rt, den_degree)
+                    for k in bins])
+    np.testing.assert_allclose(est.frf_[bins], ref, rtol=1e-8)
+
+
+def _independent_regressor(U, Y, k, F, n, Rg, Rt, Re):
+    """Per-bin regressor written from eq. (Kvector) with plain loops."""
+    N, M = U.size, Y.size
+    A, b = [], []
+    for r in range(-n, n + 1):
+        x = r / n
+        row = [x**s * U[(k + r + f * M) % N] for s in range(Rg + 1) for f in range(F)]
+        row += [x**s for s in range(Rt + 1)]
+        row += [-(x**s) * Y[(k + r) % M] for s in range(1, Re + 1)]
+        A.append(row)
+        b.append(Y[(k + r) % M])
+    return np.array(A), np.array(b)
+
+
+def test_batched_solver_matches_per_bin_qr_on_noisy_data():
+    rng = np.random.default_rng(11)
+    F, N = 3, 1200
+    u = multisine(N, rms=1.44, rng=rng)
+    y = simulate_resonant(u, F, noise_std=1e-3, rng=rng)
+    est = LRMBeyondNyquist().fit(u, y, F=F)
+    U, Y = np.fft.fft(u), np.fft.fft(y)
+    for k in range(0, N // F // 2 + 1, 9):
+        A, b = _independent_regressor(U, Y, k, F, 18, 4, 4, 7)
+        scale = np.linalg.norm(A, axis=0)
+        Q, R = np.linalg.qr(A / scale)
+        theta = np.linalg.solve(R, Q.conj().T @ b) / scale
+        got = est.local_fit_.system[k]
+        np.testing.assert_allclose(got, F * theta[:F], rtol=1e-6)
+
+
+def test_lpm_is_lrm_with_zero_denominator():
+    rng = np.random.default_rng(5)
+    u = multisine(1200, rng=rng)
+    y = simulate_resonant(u, 3, 1e-2, rng)
+    lpm = LPMBeyondNyquist(half_window=15, degree=3).fit(u, y, 3)
+    lrm = LRMBeyondNyquist(half_window=15, num_degree=3, transient_degree=3,
+                           den_degree=0).fit(u, y, 3)
+    np.testing.assert_array_equal(lpm.frf_, lrm.frf_)
+    np.testing.assert_array_equal(lpm.frf_std_, lrm.frf_std_)
+    assert lpm.n_params_ == lrm.n_params_ == 4 * 3 + 4
+
+
+def test_aliasing_relation_on_simulated_data():
+    rng = np.random.default_rng(2)
+    b, a = resonant_system()
+    for F in (2, 3, 5):
+        u = multisine(100 * F, rng=rng)
+        y_h = lfilter(b, a, u)
+        Y_h, Y_l = np.fft.fft(y_h), np.fft.fft(y_h[::F])
+        M = y_h.size // F
+        folded = Y_h.reshape(F, M).sum(axis=0) / F
+        np.testing.assert_allclose(Y_l, folded, rtol=0, atol=1e-12 * np.abs(Y_h).max())
+
+
+def test_estimate_is_conjugate_symmetric():
+    """Solving every slow bin (not only 0..M//2) gives G(N-j) = conj(G(j))."""
+    rng = np.random.default_rng(8)
+    F, N = 3, 1200
+    u = multisine(N, rng=rng)
+    y = simulate_resonant(u, F, 1e-2, rng)
+    layout = LocalModelLayout(F=F, half_window=18, num_degree=4,
+                              transient_degree=4, den_degree=7)
+    M = N // F
+    fit = fit_local_models(np.fft.fft(u)[None], np.fft.fft(y)[None], layout,
+                           slow_bins=np.arange(M))
+    G = np.empty(N, dtype=complex)
+    for f in range(F):
+        G[np.arange(M) + f * M] = fit.system[:, f]
+    mirror = np.conj(G[(-np.arange(N)) % N])
+    np.testing.assert_allclose(G, mirror, rtol=1e-9, atol=0)
+
+
+def test_noise_free_estimate_is_close_to_truth():
+    """Sanity: the resonant system is identified well without noise."""
+    b, a = resonant_system()
+    u = multisine(1200, rng=np.random.default_rng(1))
+    est = LRMBeyondNyquist().fit(u, lfilter(b, a, u)[::3], F=3)
+    G = frf_of(b, a, 1200)
+    rel = np.abs(est.frf_ - G) / np.abs(G)
+    assert np.median(rel) < 1e-4
