@@ -5,11 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import frf_of, in_class_data, resonant_system, simulate_resonant
+from conftest import frf_of, resonant_system, simulate_resonant
 from scipy.signal import lfilter
 
 from lrmfrf import LPMBeyondNyquist, LRMBeyondNyquist, multisine
 from lrmfrf.local_models import fit_local_models
+from lrmfrf.testing import in_class_data
 from lrmfrf.windows import LocalModelLayout
 
 
