@@ -1,0 +1,538 @@
+"""Bode plots with uncertainty bands, and FRF error plots (matplotlib).
+
+matplotlib is an optional dependency (``pip install "lrmfrf[plot]"``); it is
+imported when a plot is drawn, so ``import lrmfrf.plotting`` always works.
+
+Every function accepts fitted estimators (``frequencies_`` in Hz, ``frf_``,
+``frf_std_``, ``valid_``, ``downsampling_factor_``, ``sample_time_``),
+``control.FrequencyResponseData`` objects (``omega`` in rad/s) or
+``(frequencies_hz, frf)`` / ``(frequencies_hz, frf, std)`` tuples, and returns
+what it drew.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["plot_frf", "plot_error", "frf_curve"]
+
+logger = logging.getLogger(__name__)
+
+_INSTALL_HINT = 'plotting needs matplotlib: pip install "lrmfrf[plot]"'
+
+
+@dataclass(frozen=True)
+class FRFCurve:
+    """One FRF on its frequency grid, as the plots use it.
+
+    Attributes
+    ----------
+    frequencies : ndarray of shape (n_freq,)
+        Frequencies in Hz.
+    frf : ndarray of shape (n_freq,), complex
+        Invalid bins hold NaN.
+    std : ndarray of shape (n_freq,) or None
+        Standard deviation of the complex estimate.
+    slow_nyquist : float or None
+        ``1 / (2 F Ts)`` in Hz when known.
+    sample_time : float or None
+        Fast sample time in seconds when known.
+    n_samples : int or None
+        Record length ``N`` when the grid is the fast DFT grid ``k = 0..N//2``.
+    """
+
+    frequencies: np.ndarray
+    frf: np.ndarray
+    std: np.ndarray | None
+    slow_nyquist: float | None
+    sample_time: float | None
+    n_samples: int | None = None
+
+
+def frf_curve(obj) -> FRFCurve:
+    """Convert an estimator, an FRD or a tuple to an :class:`FRFCurve`.
+
+    Parameters
+    ----------
+    obj : fitted estimator, control.FrequencyResponseData or tuple
+        A tuple is ``(frequencies_hz, frf)`` or ``(frequencies_hz, frf, std)``.
+
+    Returns
+    -------
+    FRFCurve
+
+    Raises
+    ------
+    TypeError
+        For other objects.
+    ValueError
+        For an unfitted estimator, a MIMO FRD or arrays of different lengths.
+    """
+    if hasattr(obj, "get_params") and not hasattr(obj, "frf_"):
+        raise ValueError(
+            f"This {type(obj).__name__} is not fitted. Call fit(u_h, y_l, F) "
+            "before plotting it."
+        )
+    if hasattr(obj, "frf_") and hasattr(obj, "frequencies_"):
+        return _estimator_curve(obj)
+    if hasattr(obj, "omega") and (hasattr(obj, "frdata") or hasattr(obj, "fresp")):
+        return _frd_curve(obj)
+    if isinstance(obj, tuple) and len(obj) in (2, 3):
+        return _tuple_curve(obj)
+    raise TypeError(
+        f"Cannot plot an object of type {type(obj).__name__}. Pass a fitted "
+        "estimator, a control.FrequencyResponseData or a (frequencies_hz, frf"
+        "[, std]) tuple."
+    )
+
+
+def plot_frf(
+    *frfs,
+    true=None,
+    ax=None,
+    std_band: float = 2.0,
+    labels: Sequence[str] | None = None,
+    slow_nyquist: float | bool | None = None,
+    xscale: str = "log",
+    max_points: int | None = None,
+    title: str | None = None,
+):
+    """Bode plot (magnitude in dB, phase in degrees) with uncertainty bands.
+
+    Parameters
+    ----------
+    *frfs : fitted estimators, control.FrequencyResponseData or tuples
+        FRFs to draw (see :func:`frf_curve`); invalid bins leave gaps.
+    true : control LTI system, FRD, tuple or complex ndarray, optional
+        Reference drawn as a black dashed line. A python-control system is
+        evaluated on a dense grid (at ``z = exp(j 2 pi f Ts)`` if discrete); an
+        array must lie on the first FRF's grid.
+    ax : sequence of two matplotlib Axes, optional
+        ``(magnitude_axes, phase_axes)`` to draw into; default a new figure.
+    std_band : float, default=2.0
+        Shade ``|G| +/- std_band * std`` (in dB; a lower edge at or below zero
+        is drawn down to the bottom of the axes) and the matching phase band
+        ``+/- arcsin(std_band * std / |G|)``. ``0`` draws no band.
+    labels : sequence of str, optional
+        Legend labels, one per FRF; default the class names.
+    slow_nyquist : float, bool or None, default=None
+        Frequency in Hz of the dashed vertical line marking the slow Nyquist
+        frequency ``1/(2 F Ts)``. ``None`` takes it from the first FRF that
+        knows it; ``False`` draws no line.
+    xscale : {"log", "linear"}, default="log"
+        Frequency axis scale; ``"log"`` leaves out 0 Hz.
+    max_points : int, optional
+        Draw at most about this many points per curve (log-spaced bins), for
+        very long records.
+    title : str, optional
+        Figure title.
+
+    Returns
+    -------
+    fig : matplotlib.figure.Figure
+    axes : ndarray of shape (2,) of matplotlib Axes
+        Magnitude and phase axes.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from lrmfrf.plotting import plot_frf
+    >>> f = np.linspace(1, 100, 50)
+    >>> fig, axes = plot_frf((f, 1 / (1 + 1j * f / 10), 0.01 * np.ones(50)),
+    ...                      slow_nyquist=40.0)
+    >>> [a.get_ylabel() for a in axes]
+    ['Magnitude [dB]', 'Phase [deg]']
+    """
+    if not frfs:
+        raise ValueError("plot_frf needs at least one FRF to draw. Pass an estimator.")
+    curves = [frf_curve(obj) for obj in frfs]
+    labels = _check_labels(labels, frfs)
+    std_band = _check_std_band(std_band)
+    if xscale not in ("log", "linear"):
+        raise ValueError(f"xscale must be 'log' or 'linear'. Got {xscale!r}.")
+    fig, axes = _bode_axes(ax)
+    mag_ax, phase_ax = axes
+    floors = []
+    for index, (curve, label) in enumerate(zip(curves, labels, strict=True)):
+        color = f"C{index}"
+        keep = _plot_indices(curve.frequencies, xscale, max_points)
+        floors.append(
+            _draw_curve(axes, curve, keep, label, color, std_band)
+        )
+    if true is not None:
+        reference = _true_curve(true, curves[0])
+        keep = _plot_indices(reference.frequencies, xscale, None)
+        _draw_curve(axes, reference, keep, "true", "k", 0.0, linestyle="--")
+    nyquist = _resolve_slow_nyquist(slow_nyquist, curves)
+    if nyquist is not None:
+        for axis in axes:
+            axis.axvline(nyquist, color="0.3", linestyle=":", linewidth=1.2)
+        mag_ax.axvline(
+            nyquist, color="0.3", linestyle=":", linewidth=1.2,
+            label=f"slow Nyquist {nyquist:.4g} Hz",
+        )
+    if std_band > 0 and any(c.std is not None for c in curves):
+        from matplotlib.patches import Patch
+
+        band_key = Patch(color="0.5", alpha=0.35, linewidth=0,
+                         label=f"±{std_band:g} std (shaded)")
+    else:
+        band_key = None
+    finite_floors = [f for f in floors if np.isfinite(f)]
+    if finite_floors:
+        mag_ax.set_ylim(bottom=min(finite_floors))
+    for axis in axes:
+        axis.set_xscale(xscale)
+        axis.grid(True, which="major", alpha=0.4)
+        axis.grid(True, which="minor", alpha=0.15)
+    phase_ax.set_ylim(-200, 200)
+    phase_ax.set_yticks([-180, -90, 0, 90, 180])
+    mag_ax.set_ylabel("Magnitude [dB]")
+    phase_ax.set_ylabel("Phase [deg]")
+    phase_ax.set_xlabel("Frequency [Hz]")
+    handles, names = mag_ax.get_legend_handles_labels()
+    if band_key is not None:
+        handles.append(band_key)
+        names.append(band_key.get_label())
+    mag_ax.legend(handles, names, loc="best", fontsize="small")
+    if title:
+        mag_ax.set_title(title)
+    return fig, axes
+
+
+def plot_error(
+    G_true,
+    *estimates,
+    frequencies=None,
+    kind: str = "cumulative",
+    labels: Sequence[str] | None = None,
+    ax=None,
+    slow_nyquist: float | bool | None = None,
+    xscale: str = "log",
+):
+    """Plot the cumulative or relative error of FRF estimates.
+
+    Parameters
+    ----------
+    G_true : complex ndarray of shape (n_freq,) or control LTI system
+        True FRF on the estimates' grid, or a system evaluated on each
+        estimate's own grid (needed when the grids differ, e.g. spectral
+        analysis on its segment grid).
+    *estimates : fitted estimators or complex ndarrays of shape (n_freq,)
+        Estimates; arrays need ``frequencies``.
+    frequencies : ndarray of shape (n_freq,), optional
+        Frequencies in Hz of array estimates (and of an array ``G_true``).
+    kind : {"cumulative", "relative"}, default="cumulative"
+        ``"cumulative"``: the paper's eq. (CPSD),
+        ``(1/N) sum_{k<=n} |G - Ghat|`` against frequency (see
+        :func:`lrmfrf.metrics.cumulative_error`; ``N`` is the estimator's
+        record length on the fast DFT grid, else ``2 (n_freq - 1)``; invalid
+        bins add nothing). ``"relative"``: ``|G - Ghat| / |G|`` on a log axis
+        (see :func:`lrmfrf.metrics.relative_error`).
+    labels : sequence of str, optional
+        Legend labels, one per estimate.
+    ax : matplotlib Axes, optional
+        Axes to draw into; default a new figure.
+    slow_nyquist : float, bool or None, default=None
+        As in :func:`plot_frf`.
+    xscale : {"log", "linear"}, default="log"
+
+    Returns
+    -------
+    fig : matplotlib.figure.Figure
+    ax : matplotlib Axes
+    """
+    if kind not in ("cumulative", "relative"):
+        raise ValueError(
+            f"kind must be 'cumulative' or 'relative'. Got {kind!r}."
+        )
+    if not estimates:
+        raise ValueError("plot_error needs at least one estimate. Pass an estimator.")
+    if xscale not in ("log", "linear"):
+        raise ValueError(f"xscale must be 'log' or 'linear'. Got {xscale!r}.")
+    from . import metrics
+
+    labels = _check_labels(labels, estimates)
+    curves = [_estimate_curve(est, frequencies) for est in estimates]
+    if ax is None:
+        plt = _pyplot()
+        fig, ax = plt.subplots(figsize=(8, 4), layout="constrained")
+    else:
+        fig = ax.figure
+    for index, (curve, label) in enumerate(zip(curves, labels, strict=True)):
+        truth = _truth_on_grid(G_true, curve, frequencies)
+        if kind == "cumulative":
+            error = metrics.cumulative_error(
+                truth, curve.frf, curve.n_samples,
+                valid=np.isfinite(curve.frf) & np.isfinite(truth),
+            )
+        else:
+            error = metrics.relative_error(truth, curve.frf)
+        keep = _plot_indices(curve.frequencies, xscale, None)
+        ax.plot(curve.frequencies[keep], np.asarray(error)[keep], color=f"C{index}",
+                label=label)
+    nyquist = _resolve_slow_nyquist(slow_nyquist, curves)
+    if nyquist is not None:
+        ax.axvline(nyquist, color="0.3", linestyle=":", linewidth=1.2,
+                   label=f"slow Nyquist {nyquist:.4g} Hz")
+    ax.set_xscale(xscale)
+    if kind == "relative":
+        ax.set_yscale("log")
+        ax.set_ylabel("Relative error |G - Ĝ| / |G|")
+    else:
+        ax.set_ylabel("Cumulative error (1/N) Σ |G - Ĝ|")
+    ax.set_xlabel("Frequency [Hz]")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(loc="best", fontsize="small")
+    return fig, ax
+
+
+# --------------------------------------------------------------------------
+# Private helpers
+# --------------------------------------------------------------------------
+
+
+def _pyplot():
+    try:
+        import matplotlib.pyplot as plt
+    except ImportError as exc:
+        raise ImportError(_INSTALL_HINT) from exc
+    return plt
+
+
+def _bode_axes(ax):
+    if ax is None:
+        plt = _pyplot()
+        fig, axes = plt.subplots(2, 1, sharex=True, figsize=(8, 6),
+                                 layout="constrained")
+        return fig, np.asarray(axes)
+    try:
+        axes = np.asarray(list(ax), dtype=object)
+    except TypeError:
+        axes = np.asarray([ax], dtype=object)
+    if axes.size != 2:
+        raise ValueError(
+            f"ax must be two Axes (magnitude, phase). Got {axes.size}. Create them "
+            "with fig.subplots(2, 1, sharex=True)."
+        )
+    return axes[0].figure, axes
+
+
+def _check_labels(labels, objs) -> list[str]:
+    if labels is None:
+        return [_default_label(obj) for obj in objs]
+    labels = list(labels)
+    if len(labels) != len(objs):
+        raise ValueError(
+            f"Got {len(labels)} labels for {len(objs)} FRFs. Pass one label per FRF."
+        )
+    return [str(label) for label in labels]
+
+
+def _default_label(obj) -> str:
+    if isinstance(obj, (tuple, np.ndarray)):
+        return "estimate"
+    return type(obj).__name__
+
+
+def _check_std_band(std_band) -> float:
+    try:
+        value = float(std_band)
+    except (TypeError, ValueError):
+        value = np.nan
+    if not np.isfinite(value) or value < 0:
+        raise ValueError(
+            f"std_band must be a non-negative number of standard deviations. Got "
+            f"{std_band!r}. Use e.g. 2 (0 draws no band)."
+        )
+    return value
+
+
+def _estimator_curve(est) -> FRFCurve:
+    frf = np.array(est.frf_, dtype=complex)
+    valid = np.asarray(getattr(est, "valid_", np.ones(frf.shape, bool)), dtype=bool)
+    frf[~valid] = np.nan
+    std = getattr(est, "frf_std_", None)
+    std = None if std is None else np.where(valid, np.asarray(std, dtype=float), np.nan)
+    F = getattr(est, "downsampling_factor_", None)
+    Ts = getattr(est, "sample_time_", None)
+    nyquist = 1.0 / (2.0 * F * Ts) if F and Ts else None
+    N = getattr(est, "n_samples_", None)
+    N = N if N is not None and frf.size == N // 2 + 1 else None
+    return FRFCurve(np.asarray(est.frequencies_, float), frf, std, nyquist, Ts, N)
+
+
+def _frd_curve(frd) -> FRFCurve:
+    data = getattr(frd, "frdata", None)
+    if data is None:
+        data = frd.fresp
+    data = np.asarray(data)
+    if data.ndim == 3:
+        if data.shape[:2] != (1, 1):
+            raise ValueError(
+                f"Only SISO FRDs can be plotted. Got {data.shape[0]} outputs and "
+                f"{data.shape[1]} inputs. Plot one channel, e.g. frd[0, 0]."
+            )
+        data = data[0, 0]
+    dt = getattr(frd, "dt", None)
+    numeric = isinstance(dt, (int, float)) and not isinstance(dt, bool)
+    Ts = float(dt) if numeric and dt else None
+    freq = np.asarray(frd.omega, dtype=float) / (2 * np.pi)
+    return FRFCurve(freq, data.astype(complex), None, None, Ts)
+
+
+def _tuple_curve(obj) -> FRFCurve:
+    freq = np.asarray(obj[0], dtype=float)
+    frf = np.asarray(obj[1], dtype=complex)
+    std = np.asarray(obj[2], dtype=float) if len(obj) == 3 else None
+    shapes = {a.shape for a in (freq, frf) + (() if std is None else (std,))}
+    if len(shapes) != 1 or freq.ndim != 1:
+        raise ValueError(
+            f"The (frequencies, frf[, std]) arrays must be 1-D of equal length. Got "
+            f"shapes {[np.shape(a) for a in obj]}. Pass matching arrays."
+        )
+    return FRFCurve(freq, frf, std, None, None)
+
+
+def _estimate_curve(est, frequencies) -> FRFCurve:
+    if isinstance(est, np.ndarray) or (
+        isinstance(est, Sequence) and not isinstance(est, tuple)
+    ):
+        if frequencies is None:
+            raise ValueError(
+                "Array estimates need their frequencies. Pass frequencies= (Hz) "
+                "or the fitted estimators themselves."
+            )
+        return _tuple_curve((frequencies, est))
+    return frf_curve(est)
+
+
+def _is_lti(obj) -> bool:
+    return hasattr(obj, "dt") and callable(obj) and not hasattr(obj, "omega")
+
+
+def _evaluate_lti(system, frequencies: np.ndarray, sample_time) -> np.ndarray:
+    if getattr(system, "ninputs", 1) != 1 or getattr(system, "noutputs", 1) != 1:
+        raise ValueError(
+            "The true system must be SISO. Pass one channel, e.g. system[0, 0]."
+        )
+    dt = system.dt
+    if dt is None or dt == 0 or dt is False:
+        points = 2j * np.pi * frequencies
+    else:
+        step = sample_time if dt is True else float(dt)
+        if step is None:
+            raise ValueError(
+                "The true system has an unspecified sample time (dt=True). Give "
+                "it dt in seconds."
+            )
+        points = np.exp(2j * np.pi * frequencies * step)
+    return np.asarray(system(points), dtype=complex).reshape(frequencies.shape)
+
+
+def _true_curve(true, first: FRFCurve) -> FRFCurve:
+    if _is_lti(true):
+        grid = first.frequencies
+        positive = grid[grid > 0]
+        if positive.size:
+            dense = np.geomspace(positive.min(), grid.max(), 2000)
+            grid = np.union1d(grid, dense)
+        return FRFCurve(grid, _evaluate_lti(true, grid, first.sample_time), None,
+                        None, first.sample_time)
+    if isinstance(true, np.ndarray):
+        if true.shape != first.frequencies.shape:
+            raise ValueError(
+                f"An array `true` must lie on the first FRF's grid of "
+                f"{first.frequencies.size} frequencies. Got shape {true.shape}. "
+                "Pass the true system (python-control) to evaluate it anywhere."
+            )
+        return FRFCurve(first.frequencies, true.astype(complex), None, None, None)
+    return frf_curve(true)
+
+
+def _truth_on_grid(G_true, curve: FRFCurve, frequencies) -> np.ndarray:
+    if _is_lti(G_true):
+        return _evaluate_lti(G_true, curve.frequencies, curve.sample_time)
+    truth = np.asarray(G_true, dtype=complex)
+    if truth.shape != curve.frf.shape:
+        raise ValueError(
+            f"G_true has shape {truth.shape} but an estimate has "
+            f"{curve.frf.shape[0]} frequencies. Pass the true system "
+            "(python-control) to evaluate it on each estimate's grid."
+        )
+    return truth
+
+
+def _resolve_slow_nyquist(slow_nyquist, curves) -> float | None:
+    if slow_nyquist is False:
+        return None
+    if slow_nyquist is None or slow_nyquist is True:
+        known = [c.slow_nyquist for c in curves if c.slow_nyquist is not None]
+        return known[0] if known else None
+    value = float(slow_nyquist)
+    if not np.isfinite(value) or value <= 0:
+        raise ValueError(
+            f"slow_nyquist must be a positive frequency in Hz, None or False. Got "
+            f"{slow_nyquist!r}."
+        )
+    return value
+
+
+def _plot_indices(frequencies, xscale: str, max_points) -> np.ndarray:
+    index = np.arange(frequencies.size)
+    if xscale == "log":
+        index = index[frequencies > 0]
+    if max_points is not None and index.size > max_points:
+        if xscale == "log":
+            picks = np.geomspace(1, index.size, int(max_points)) - 1
+        else:
+            picks = np.linspace(0, index.size - 1, int(max_points))
+        index = index[np.unique(np.round(picks).astype(int))]
+    return index
+
+
+def _draw_curve(axes, curve: FRFCurve, keep, label, color, std_band, linestyle="-"):
+    """Draw one curve and its bands; return a floor for the magnitude axis."""
+    mag_ax, phase_ax = axes
+    freq = curve.frequencies[keep]
+    frf = curve.frf[keep]
+    magnitude = np.abs(frf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mag_db = 20 * np.log10(magnitude)
+    phase = np.angle(frf, deg=True)
+    mag_ax.plot(freq, mag_db, color=color, linestyle=linestyle, linewidth=1.0,
+                label=label)
+    phase_ax.plot(*_break_wraps(freq, phase), color=color, linestyle=linestyle,
+                  linewidth=1.0)
+    finite = mag_db[np.isfinite(mag_db)]
+    if finite.size == 0:
+        return np.nan
+    floor = float(finite.min()) - 10.0
+    if curve.std is None or std_band == 0:
+        return floor
+    spread = std_band * curve.std[keep]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        upper = 20 * np.log10(magnitude + spread)
+        lower = np.where(
+            magnitude > spread, 20 * np.log10(magnitude - spread), floor - 10.0
+        )
+        ratio = np.clip(spread / magnitude, 0.0, 1.0)
+        half_width = np.where(ratio < 1, np.degrees(np.arcsin(ratio)), 180.0)
+    band = np.isfinite(upper) & np.isfinite(spread)
+    mag_ax.fill_between(freq, lower, upper, where=band, color=color, alpha=0.25,
+                        linewidth=0)
+    phase_band = band.copy()
+    phase_band[np.flatnonzero(np.abs(np.diff(phase)) > 180.0) + 1] = False
+    phase_ax.fill_between(freq, phase - half_width, phase + half_width,
+                          where=phase_band, color=color, alpha=0.25, linewidth=0)
+    return floor
+
+
+def _break_wraps(freq: np.ndarray, phase: np.ndarray):
+    """Insert NaN where the wrapped phase jumps by more than 180 degrees."""
+    jumps = np.flatnonzero(np.abs(np.diff(phase)) > 180.0) + 1
+    return np.insert(freq, jumps, np.nan), np.insert(phase, jumps, np.nan)

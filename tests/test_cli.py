@@ -1,0 +1,420 @@
+"""Tests of the command line (through real subprocesses) and of lrmfrf.progress.
+
+Every bad-input case runs ``python -m lrmfrf.cli`` in a subprocess and checks:
+non-zero exit status, exactly one line on standard error naming the file, the
+problem and the fix, and no traceback. The error cases are launched
+concurrently by one module fixture to keep the run short.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+import sys
+import types
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.io
+from conftest import simulate_resonant
+
+from lrmfrf import LRMBeyondNyquist
+from lrmfrf.cli import main
+from lrmfrf.io import FRF_COLUMNS
+from lrmfrf.progress import progress, progress_enabled
+from lrmfrf.signals import multisine
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = REPO / "lrmfrf" / "data"
+EXAMPLE_CSV = DATA / "wafer_stage_example.csv"
+EXAMPLE_NPZ = DATA / "wafer_stage_example.npz"
+FIT = ["--F", "3", "--sample-time", "0.5e-3"]
+
+
+def run_cli(*args, cwd) -> subprocess.CompletedProcess:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(
+        [str(REPO)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])
+    )
+    env["MPLBACKEND"] = "Agg"
+    return subprocess.run(
+        [sys.executable, "-m", "lrmfrf.cli", *map(str, args)],
+        cwd=cwd, env=env, capture_output=True, text=True, timeout=300,
+    )
+
+
+def sha256(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def write_csv(path: Path, u, y_column, header="u,y"):
+    lines = [header]
+    for a, b in zip(u, y_column, strict=True):
+        lines.append(f"{float(a)!r},{'' if b is None else b}")
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def fast_column(y, F):
+    col = [None] * (F * len(y))
+    col[::F] = [repr(float(v)) for v in y]
+    return col
+
+
+@pytest.fixture(scope="module")
+def records():
+    rng = np.random.default_rng(21)
+    u = multisine(600, rng=rng)
+    y = simulate_resonant(u, 3, 1e-3, rng)
+    return u, y
+
+
+# --------------------------------------------------------------------------
+# Bad input: one line on stderr, non-zero status, no traceback
+# --------------------------------------------------------------------------
+
+#: name -> (arguments, expected status, fragments of the one stderr line).
+#: SUBPROCESS_CASES run as real subprocesses (the data errors users meet most);
+#: INPROCESS_CASES call main() in this process (same code path, much faster).
+SUBPROCESS_CASES = {
+    "missing file": (["fit", "nope.csv", *FIT, "--out", "o"], 1,
+                     ["nope.csv", "no such file", "Check the path"]),
+    "unknown format": (["fit", "data.xlsx", *FIT, "--out", "o"], 1,
+                       ["data.xlsx", "unknown file format '.xlsx'", "Save the data"]),
+    "unreadable npz": (["fit", "junk.npz", *FIT, "--out", "o"], 1,
+                       ["junk.npz", "not a readable .npz archive", "numpy.savez"]),
+    "missing column": (["fit", "good.csv", *FIT, "--output-column", "z", "--out",
+                        "o"], 1,
+                       ["good.csv", "no column named 'z'", "--output-column"]),
+    "nan in input": (["fit", "nan_u.csv", *FIT, "--out", "o"], 1,
+                     ["nan_u.csv", "input 'u' has 1 empty, NaN or inf", "line 12",
+                      "fill in"]),
+    "lengths do not match F": (["fit", "slow.csv", "--F", "4", "--sample-time",
+                                "0.5e-3", "--out", "o"], 1,
+                               ["slow.csv", "lengths do not match F=4", "N=600",
+                                "M=200", "is F=3?", "Check --F"]),
+    "non-numeric cell": (["fit", "text.csv", *FIT, "--out", "o"], 1,
+                         ["text.csv", "non-numeric cell '0.3 V'", "line 8",
+                          "Use numbers"]),
+}
+INPROCESS_CASES = {
+    "unreadable mat": (["fit", "junk.mat", *FIT, "--out", "o"], 1,
+                       ["junk.mat", "not a readable MATLAB file", "-v7"]),
+    "mat text variable": (["fit", "text.mat", *FIT, "--out", "o"], 1,
+                          ["text.mat", "variable 'u' is not numeric", "Store 'u'"]),
+    "nan in output": (["fit", "nan_y.csv", *FIT, "--out", "o"], 1,
+                      ["nan_y.csv", "output 'y' has 1 empty, NaN or inf",
+                       "line 32", "fill in"]),
+    "bad local degrees": (["fit", "good.csv", *FIT, "--half-window", "3", "--out",
+                           "o"], 1,
+                          ["good.csv", "Too few equations", "Increase half_window"]),
+    "out is a file": (["fit", "good.csv", *FIT, "--out", "good.csv"], 1,
+                      ["good.csv", "--out is a file"]),
+    "existing output": (["fit", "good.csv", *FIT, "--out", "taken"], 1,
+                        ["frf.csv", "exists already", "--force"]),
+    "output would replace input": (["fit", "frf.csv", *FIT, "--out", ".",
+                                    "--force"], 1,
+                                   ["frf.csv", "would replace the input file",
+                                    "Choose another output folder"]),
+    "F is zero": (["fit", "good.csv", "--F", "0", "--sample-time", "1e-3", "--out",
+                   "o"], 2, ["--F", "expected a positive integer, got '0'"]),
+    "sample time missing": (["fit", "good.csv", "--F", "3", "--out", "o"], 2,
+                            ["required", "--sample-time"]),
+    "option of another method": (["fit", "good.csv", *FIT, "--method", "sa",
+                                  "--den-degree", "3", "--out", "o"], 2,
+                                 ["--den-degree", "does not apply", "--method sa"]),
+    "demo negative seed": (["demo", "--seed", "-1"], 2,
+                           ["--seed", "expected an integer >= 0, got '-1'"]),
+    "demo snr not a number": (["demo", "--snr", "nan"], 2,
+                              ["--snr", "expected a finite number"]),
+    "no command": ([], 2, ["required: COMMAND"]),
+    "example data exists": (["example-data", "--out", "."], 1,
+                            ["wafer_stage_example.csv", "exists already",
+                             "--force"]),
+}
+
+
+def _check_one_line(status, out, err, expected_status, fragments):
+    assert status == expected_status, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    assert lines[0].startswith("lrmfrf")
+    for fragment in fragments:
+        assert fragment in lines[0], (fragment, lines[0])
+    assert out == ""
+
+
+@pytest.fixture(scope="module")
+def error_runs(tmp_path_factory, records):
+    folder = tmp_path_factory.mktemp("cli_errors")
+    u, y = records
+    write_csv(folder / "good.csv", u, fast_column(y, 3))
+    write_csv(folder / "slow.csv", u, [repr(float(v)) for v in y] + [None] * 400)
+    u_nan = u.copy()
+    u_nan[10] = np.nan
+    write_csv(folder / "nan_u.csv", u_nan, fast_column(y, 3))
+    y_col = fast_column(y, 3)
+    y_col[30] = "nan"
+    write_csv(folder / "nan_y.csv", u, y_col)
+    y_col = fast_column(y, 3)
+    y_col[6] = "0.3 V"
+    write_csv(folder / "text.csv", u, y_col)
+    write_csv(folder / "frf.csv", u, fast_column(y, 3))
+    (folder / "data.xlsx").write_bytes(b"PK\x03\x04")
+    (folder / "junk.npz").write_bytes(b"definitely not a zip archive")
+    (folder / "junk.mat").write_bytes(b"\x00" * 300)
+    scipy.io.savemat(folder / "text.mat", {"u": "volts", "y": y})
+    (folder / "wafer_stage_example.csv").write_text("mine\n")
+    (folder / "taken").mkdir()
+    (folder / "taken" / "frf.csv").write_text("keep me\n")
+    hashes = {p.name: sha256(p) for p in folder.iterdir() if p.is_file()}
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        futures = {
+            name: pool.submit(run_cli, *args, cwd=folder)
+            for name, (args, _, _) in SUBPROCESS_CASES.items()
+        }
+        futures["debug"] = pool.submit(
+            run_cli, "fit", "nope.csv", *FIT, "--out", "o", "--debug", cwd=folder
+        )
+        results = {name: future.result() for name, future in futures.items()}
+    return folder, results, hashes
+
+
+@pytest.mark.parametrize("case", sorted(SUBPROCESS_CASES))
+def test_bad_input_subprocess_one_line_nonzero_status(error_runs, case):
+    _, results, _ = error_runs
+    _, status, fragments = SUBPROCESS_CASES[case]
+    result = results[case]
+    _check_one_line(result.returncode, result.stdout, result.stderr, status,
+                    fragments)
+
+
+@pytest.mark.parametrize("case", sorted(INPROCESS_CASES))
+def test_bad_input_in_process_one_line_nonzero_status(
+    error_runs, case, monkeypatch, capsys
+):
+    folder, _, _ = error_runs
+    args, status, fragments = INPROCESS_CASES[case]
+    monkeypatch.chdir(folder)
+    capsys.readouterr()
+    try:
+        got = main(args)
+    except SystemExit as exc:  # argparse usage errors
+        got = exc.code
+    captured = capsys.readouterr()
+    _check_one_line(got, captured.out, captured.err, status, fragments)
+
+
+def test_failed_runs_modify_no_file(error_runs):
+    folder, _, hashes = error_runs
+    after = {name: sha256(folder / name) for name in hashes}
+    assert after == hashes
+    assert (folder / "taken" / "frf.csv").read_text() == "keep me\n"
+    assert not (folder / "o").exists() or not any((folder / "o").rglob("*.png"))
+    assert not list(folder.rglob("*.tmp"))
+
+
+def test_debug_shows_the_traceback(error_runs):
+    result = error_runs[1]["debug"]
+    assert result.returncode != 0
+    assert "Traceback" in result.stderr and "DataFileError" in result.stderr
+
+
+# --------------------------------------------------------------------------
+# Success: the README example, outputs, safety of inputs and outputs
+# --------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def example_run(tmp_path_factory):
+    """The README example, run with --out pointing at the input's folder."""
+    if not EXAMPLE_CSV.exists():
+        pytest.fail("the shipped example is missing: run scripts/make_example_data.py")
+    folder = tmp_path_factory.mktemp("cli_example")
+    assert main(["example-data", "--out", str(folder), "--quiet"]) == 0
+    data = folder / EXAMPLE_CSV.name
+    assert sha256(data) == sha256(EXAMPLE_CSV)
+    assert sha256(folder / EXAMPLE_NPZ.name) == sha256(EXAMPLE_NPZ)
+    before = sha256(data)
+    result = run_cli("fit", data.name, *FIT, "--out", ".", cwd=folder)
+    return folder, data, before, result
+
+
+def test_example_writes_csv_npz_png_and_report(example_run):
+    folder, data, before, result = example_run
+    assert result.returncode == 0, result.stderr
+    assert result.stderr == ""
+    assert "601 of 601 bins valid" in result.stdout
+    assert sha256(data) == before  # the input, in the output folder, is untouched
+    csv_text = (folder / "frf.csv").read_text().splitlines()
+    assert csv_text[0] == ",".join(FRF_COLUMNS)
+    assert len(csv_text) == 1 + 601
+    assert (folder / "bode.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    report = (folder / "report.txt").read_text()
+    for fragment in ("Data checks", "slow Nyquist frequency: 333.333 Hz",
+                     "lengths: N = F*M = 3*400 = 1200", sha256(data),
+                     "method: lrm (LRMBeyondNyquist)"):
+        assert fragment in report
+    with np.load(folder / "frf.npz", allow_pickle=False) as saved:
+        assert str(saved["method"]) == "lrm"
+        assert int(saved["downsampling_factor"]) == 3
+    assert not list(folder.glob(".*.tmp"))
+
+
+def test_example_frf_equals_library_fit(example_run):
+    """The CLI computes what the library computes on the same records."""
+    folder, _, _, result = example_run
+    assert result.returncode == 0, result.stderr
+    with np.load(EXAMPLE_NPZ, allow_pickle=False) as twin:
+        u, y = twin["u"], twin["y"]
+    est = LRMBeyondNyquist().fit(u, y, 3, sample_time=0.5e-3)
+    table = np.loadtxt(folder / "frf.csv", delimiter=",", skiprows=1)
+    np.testing.assert_allclose(table[:, 0], est.frequencies_, rtol=1e-9)
+    frf = table[:, 1] + 1j * table[:, 2]
+    # The CSV holds y with 10 significant digits and the FRF is written with
+    # 10: a relative difference far below the estimate's own std.
+    scale = np.abs(est.frf_) + est.frf_std_
+    assert np.max(np.abs(frf - est.frf_) / scale) < 1e-6
+    np.testing.assert_allclose(table[:, 5], est.frf_std_, rtol=1e-5)
+
+
+def test_existing_output_needs_force_and_force_replaces(example_run):
+    folder, data, before, _ = example_run
+    report = folder / "report.txt"
+    report.write_text("old report\n")
+    refused = run_cli("fit", data.name, *FIT, "--out", ".", cwd=folder)
+    assert refused.returncode == 1
+    assert "exists already" in refused.stderr
+    assert len(refused.stderr.strip().splitlines()) == 1
+    assert report.read_text() == "old report\n"
+    forced = run_cli("fit", data.name, *FIT, "--out", ".", "--force", "--quiet",
+                     cwd=folder)
+    assert forced.returncode == 0, forced.stderr
+    assert forced.stdout == "" and forced.stderr == ""
+    assert "Data checks" in report.read_text()
+    assert sha256(data) == before
+
+
+def test_several_files_get_one_subfolder_each(tmp_path, capsys):
+    status = main(["fit", str(EXAMPLE_CSV), str(EXAMPLE_NPZ), *FIT, "--method",
+                   "lpm", "--degree", "2", "--no-plot", "--out",
+                   str(tmp_path / "out")])
+    assert status == 0, capsys.readouterr().err
+    folders = sorted(p.name for p in (tmp_path / "out").iterdir())
+    assert folders == ["wafer_stage_example_csv", "wafer_stage_example_npz"]
+    tables = [
+        np.loadtxt(tmp_path / "out" / name / "frf.csv", delimiter=",", skiprows=1)
+        for name in folders
+    ]
+    # The CSV and NPZ twins hold the same records (CSV to 10 digits).
+    frfs = [t[:, 1] + 1j * t[:, 2] for t in tables]
+    assert np.max(np.abs(frfs[0] - frfs[1]) / np.abs(frfs[1])) < 1e-6
+    assert not (tmp_path / "out" / folders[0] / "bode.png").exists()
+    assert "degree=2" in (tmp_path / "out" / folders[0] / "report.txt").read_text()
+
+
+def test_identifiability_warning_is_one_line_and_reported(
+    tmp_path, records, monkeypatch, capsys
+):
+    u, _ = records
+    # An input with energy only in the lowest band leaves the windows that see
+    # the empty aliased bands rank-deficient.
+    U = np.zeros(301, complex)
+    U[1:60] = np.exp(2j * np.pi * np.random.default_rng(3).random(59))
+    u_low = np.fft.irfft(U, 600)
+    y = np.convolve(u_low, [0.5, 0.2])[:600][::3]
+    write_csv(tmp_path / "low.csv", u_low, fast_column(y, 3))
+    monkeypatch.chdir(tmp_path)
+    status = main(["fit", "low.csv", *FIT, "--method", "lrm", "--den-degree", "1",
+                   "--no-plot", "--out", "o"])
+    err = capsys.readouterr().err
+    assert status == 0, err
+    warnings_lines = err.strip().splitlines()
+    assert warnings_lines and all(
+        line.startswith("lrmfrf: warning: low.csv:") for line in warnings_lines
+    )
+    assert "not identifiable" in (tmp_path / "o" / "report.txt").read_text()
+
+
+# --------------------------------------------------------------------------
+# demo subcommand wiring (in-process, with a stand-in lrmfrf.demo)
+# --------------------------------------------------------------------------
+
+
+def test_demo_calls_run_demo_and_prints_the_table(monkeypatch, tmp_path, capsys):
+    calls = []
+
+    def run_demo(out_dir, *, seed=0, snr_db=45.0, overwrite=False):
+        calls.append((Path(out_dir), seed, snr_db, overwrite))
+        return types.SimpleNamespace(table="method  error\nLRM  0.1",
+                                     files=[Path(out_dir) / "a.png"])
+
+    stub = types.ModuleType("lrmfrf.demo")
+    stub.run_demo = run_demo
+    monkeypatch.setitem(sys.modules, "lrmfrf.demo", stub)
+    status = main(["demo", "--out", str(tmp_path), "--seed", "4", "--snr", "30",
+                   "--force"])
+    assert status == 0
+    assert calls == [(tmp_path, 4, 30.0, True)]
+    out = capsys.readouterr().out
+    assert "LRM  0.1" in out and "a.png" in out
+
+
+def test_demo_errors_are_one_line(monkeypatch, tmp_path, capsys):
+    monkeypatch.setitem(sys.modules, "lrmfrf.demo", None)
+    assert main(["demo", "--out", str(tmp_path)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "the demo is not available" in err[0]
+
+    def failing(out_dir, **kwargs):
+        raise FileExistsError(f"{out_dir}/table.csv exists. Pass --force.")
+
+    stub = types.ModuleType("lrmfrf.demo")
+    stub.run_demo = failing
+    monkeypatch.setitem(sys.modules, "lrmfrf.demo", stub)
+    assert main(["demo", "--out", str(tmp_path)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "table.csv exists" in err[0]
+
+
+# --------------------------------------------------------------------------
+# progress
+# --------------------------------------------------------------------------
+
+
+class _Stream:
+    def __init__(self, tty):
+        self.tty = tty
+
+    def isatty(self):
+        return self.tty
+
+
+def test_progress_disabled_returns_the_iterable_itself():
+    items = [1, 2, 3]
+    assert progress(items, enabled=False) is items
+
+
+def test_progress_enabled_wraps_in_tqdm_and_yields_the_same_items(monkeypatch):
+    tqdm = pytest.importorskip("tqdm")
+    bar = progress(range(5), enabled=True, desc="x", disable=False,
+                   file=open(os.devnull, "w"))
+    assert isinstance(bar, tqdm.tqdm)
+    assert list(bar) == [0, 1, 2, 3, 4]
+
+
+def test_progress_without_tqdm_falls_back(monkeypatch):
+    monkeypatch.setitem(sys.modules, "tqdm", None)
+    items = [1, 2]
+    assert progress(items, enabled=True) is items
+
+
+def test_progress_enabled_none_follows_the_terminal():
+    assert progress_enabled(None, stream=_Stream(True)) is True
+    assert progress_enabled(None, stream=_Stream(False)) is False
+    assert progress_enabled(True, stream=_Stream(False)) is True
+    assert progress_enabled(None, stream=object()) is False

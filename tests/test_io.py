@@ -1,0 +1,461 @@
+"""Tests of lrmfrf.io: reading measured records, checks, atomic writing."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+
+import numpy as np
+import pytest
+import scipy.io
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from lrmfrf import io as lio
+from lrmfrf.io import (
+    FRF_COLUMNS,
+    DataFileError,
+    atomic_open,
+    check_output_path,
+    file_sha256,
+    frf_table,
+    read_measurement,
+    write_frf_csv,
+    write_frf_npz,
+)
+
+
+def _records(rng, M=40, F=3):
+    u = rng.standard_normal(F * M)
+    y = rng.standard_normal(M)
+    return u, y
+
+
+def write_csv(path, columns: dict, *, delimiter=",", preamble=""):
+    """Write columns (lists of numbers or None/str) as CSV; None is empty."""
+    names = list(columns)
+    n_rows = max(len(c) for c in columns.values())
+    lines = [delimiter.join(names)]
+    for i in range(n_rows):
+        cells = []
+        for name in names:
+            col = columns[name]
+            value = col[i] if i < len(col) else None
+            if value is None or (isinstance(value, float) and np.isnan(value)):
+                cells.append("")
+            elif isinstance(value, str):
+                cells.append(value)
+            else:
+                cells.append(repr(float(value)))
+        lines.append(delimiter.join(cells))
+    path.write_text(preamble + "\n".join(lines) + "\n", encoding="utf-8")
+    return path
+
+
+def fast_column(y, F):
+    col = [None] * (F * len(y))
+    col[::F] = list(y)
+    return col
+
+
+# --------------------------------------------------------------------------
+# Reading: known answers
+# --------------------------------------------------------------------------
+
+
+def test_csv_fast_layout_recovers_records_exactly(tmp_path):
+    rng = np.random.default_rng(0)
+    u, y = _records(rng)
+    path = write_csv(tmp_path / "d.csv", {"t": list(range(120)), "u": u,
+                                          "y": fast_column(y, 3)})
+    data = read_measurement(path, F=3)
+    np.testing.assert_array_equal(data.u_h, u)  # repr() round-trips floats
+    np.testing.assert_array_equal(data.y_l, y)
+    assert data.output_layout == "fast"
+    assert data.file_format == "csv"
+    assert any("every F=3-th row" in c for c in data.checks)
+    assert data.sha256 == hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_csv_slow_layout_with_padding(tmp_path):
+    rng = np.random.default_rng(1)
+    u, y = _records(rng, M=30, F=4)
+    path = write_csv(tmp_path / "d.csv", {"y": y, "u": u})
+    data = read_measurement(path, F=4)
+    np.testing.assert_array_equal(data.y_l, y)
+    np.testing.assert_array_equal(data.u_h, u)
+    assert data.output_layout == "slow"
+    assert any("90 empty cells" in c for c in data.checks)
+
+
+def test_csv_semicolon_comments_bom_and_trailing_blank_lines(tmp_path):
+    rng = np.random.default_rng(2)
+    u, y = _records(rng, M=10, F=2)
+    path = write_csv(tmp_path / "d.csv", {"in": u, "out": fast_column(y, 2)},
+                     delimiter=";", preamble="# measured 2024\n\n")
+    path.write_bytes(b"\xef\xbb\xbf" + path.read_bytes() + b"\n\n")
+    data = read_measurement(path, F=2, input_column="in", output_column="out")
+    np.testing.assert_array_equal(data.u_h, u)
+    np.testing.assert_array_equal(data.y_l, y)
+
+
+def test_csv_nan_text_between_samples_is_accepted(tmp_path):
+    rng = np.random.default_rng(3)
+    u, y = _records(rng, M=8, F=3)
+    col = ["nan"] * 24
+    col[::3] = list(y)
+    data = read_measurement(write_csv(tmp_path / "d.csv", {"u": u, "y": col}), F=3)
+    np.testing.assert_array_equal(data.y_l, y)
+
+
+def test_csv_chunk_boundaries_do_not_change_result(tmp_path, monkeypatch):
+    rng = np.random.default_rng(4)
+    u, y = _records(rng, M=50, F=3)
+    path = write_csv(tmp_path / "d.csv", {"u": u, "y": fast_column(y, 3)})
+    whole = read_measurement(path, F=3)
+    monkeypatch.setattr(lio, "CSV_CHUNK_ROWS", 7)
+    chunked = read_measurement(path, F=3)
+    np.testing.assert_array_equal(whole.u_h, chunked.u_h)
+    np.testing.assert_array_equal(whole.y_l, chunked.y_l)
+    # A bad cell in a later chunk is reported at its own line.
+    u_text = [repr(float(v)) for v in u]
+    u_text[100] = "1.2.3"
+    bad = write_csv(tmp_path / "bad.csv", {"u": u_text, "y": fast_column(y, 3)})
+    with pytest.raises(DataFileError, match="line 102"):
+        read_measurement(bad, F=3)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    F=st.integers(1, 5),
+    M=st.integers(2, 30),
+    seed=st.integers(0, 2**32 - 1),
+    fast=st.booleans(),
+)
+def test_csv_round_trip_property(tmp_path_factory, F, M, seed, fast):
+    rng = np.random.default_rng(seed)
+    u = rng.standard_normal(F * M) * 10.0 ** rng.integers(-8, 8)
+    u[0] += 1.0  # never constant
+    y = rng.standard_normal(M) * 10.0 ** rng.integers(-8, 8)
+    folder = tmp_path_factory.mktemp("rt")
+    column = fast_column(y, F) if fast else list(y)
+    data = read_measurement(write_csv(folder / "d.csv", {"u": u, "y": column}), F=F)
+    np.testing.assert_array_equal(data.u_h, u)
+    np.testing.assert_array_equal(data.y_l, y)
+
+
+def test_npz_and_mat_round_trip(tmp_path):
+    rng = np.random.default_rng(5)
+    u, y = _records(rng)
+    np.savez(tmp_path / "d.npz", u=u, y=y)
+    scipy.io.savemat(tmp_path / "row.mat", {"u": u, "y": y})  # (1, n) in MATLAB
+    scipy.io.savemat(tmp_path / "col.mat", {"u": u[:, None], "y": y[:, None]})
+    for name in ("d.npz", "row.mat", "col.mat"):
+        data = read_measurement(tmp_path / name, F=3)
+        np.testing.assert_array_equal(data.u_h, u)
+        np.testing.assert_array_equal(data.y_l, y)
+        assert data.u_h.flags.writeable and data.u_h.ndim == 1
+
+
+def test_npz_fast_layout_with_nan_gaps(tmp_path):
+    rng = np.random.default_rng(6)
+    u, y = _records(rng)
+    y_fast = np.full(u.size, np.nan)
+    y_fast[::3] = y
+    np.savez(tmp_path / "d.npz", u=u, y=y_fast)
+    data = read_measurement(tmp_path / "d.npz", F=3)
+    np.testing.assert_array_equal(data.y_l, y)
+    assert data.output_layout == "fast"
+
+
+def test_reading_never_modifies_the_file(tmp_path):
+    rng = np.random.default_rng(7)
+    u, y = _records(rng)
+    path = write_csv(tmp_path / "d.csv", {"u": u, "y": fast_column(y, 3)})
+    before = path.read_bytes(), os.stat(path).st_mtime_ns
+    read_measurement(path, F=3)
+    assert (path.read_bytes(), os.stat(path).st_mtime_ns) == before
+
+
+# --------------------------------------------------------------------------
+# Reading: bad input
+# --------------------------------------------------------------------------
+
+
+@pytest.fixture
+def good(tmp_path):
+    rng = np.random.default_rng(8)
+    return _records(rng, M=20, F=3)
+
+
+def test_missing_file_and_folder_and_unknown_format(tmp_path):
+    with pytest.raises(DataFileError, match=r"nope\.csv: no such file\. Check"):
+        read_measurement(tmp_path / "nope.csv", F=3)
+    with pytest.raises(DataFileError, match="is a folder"):
+        read_measurement(tmp_path, F=3)
+    (tmp_path / "d.xlsx").write_bytes(b"PK")
+    with pytest.raises(DataFileError, match=r"unknown file format '\.xlsx'.*\.csv"):
+        read_measurement(tmp_path / "d.xlsx", F=3)
+
+
+def test_missing_column_names_the_header(tmp_path, good):
+    u, y = good
+    path = write_csv(tmp_path / "d.csv", {"u": u, "out": fast_column(y, 3)})
+    with pytest.raises(DataFileError, match=r"no column named 'y' \(the header has "
+                       r"'u', 'out'\)\. Pass the right name with --output-column"):
+        read_measurement(path, F=3)
+    with pytest.raises(ValueError, match="both 'u'"):
+        read_measurement(path, F=3, output_column="u")
+
+
+def test_duplicate_column(tmp_path):
+    (tmp_path / "d.csv").write_text("u,u,y\n1,2,3\n")
+    with pytest.raises(DataFileError, match="names 2 columns 'u'"):
+        read_measurement(tmp_path / "d.csv", F=1)
+
+
+def test_nan_in_input(tmp_path, good):
+    u, y = good
+    u = u.copy()
+    u[7] = np.nan
+    path = write_csv(tmp_path / "d.csv", {"u": u, "y": fast_column(y, 3)})
+    with pytest.raises(DataFileError, match=r"input 'u' has 1 empty, NaN or inf "
+                       r"value\(s\), the first at line 9\. The fast input"):
+        read_measurement(path, F=3)
+    np.savez(tmp_path / "d.npz", u=u, y=y)
+    with pytest.raises(DataFileError, match="the first at index 7"):
+        read_measurement(tmp_path / "d.npz", F=3)
+
+
+def test_nan_in_output(tmp_path, good):
+    u, y = good
+    y = y.copy()
+    y[4] = np.nan
+    fast = write_csv(tmp_path / "f.csv", {"u": u, "y": fast_column(y, 3)})
+    with pytest.raises(DataFileError, match=r"where slow samples belong .* line 14"):
+        read_measurement(fast, F=3)
+    slow = write_csv(tmp_path / "s.csv", {"u": u, "y": y})
+    with pytest.raises(DataFileError, match=r"inside the record, the first at line 6"):
+        read_measurement(slow, F=3)
+    y[4] = np.inf
+    np.savez(tmp_path / "d.npz", u=u, y=y)
+    with pytest.raises(DataFileError, match="index 4"):
+        read_measurement(tmp_path / "d.npz", F=3)
+
+
+def test_lengths_that_do_not_match_F(tmp_path, good):
+    u, y = good
+    path = write_csv(tmp_path / "d.csv", {"u": u, "y": y})
+    with pytest.raises(DataFileError, match=r"lengths do not match F=4: input has "
+                       r"N=60 samples and output 'y' M=20, but N must equal F\*M = "
+                       r"80 \(N/M = 3: is F=3\?\)\. Check --F"):
+        read_measurement(path, F=4)
+    np.savez(tmp_path / "d.npz", u=u[:-1], y=y)
+    with pytest.raises(DataFileError, match="N=59 samples"):
+        read_measurement(tmp_path / "d.npz", F=3)
+    np.savez(tmp_path / "fast.npz", u=u, y=u.copy())
+    with pytest.raises(DataFileError, match="is it the fast-rate output"):
+        read_measurement(tmp_path / "fast.npz", F=3)
+
+
+def test_fast_layout_needs_multiple_of_F_and_no_values_between(tmp_path, good):
+    u, y = good
+    col = fast_column(y, 3)
+    path = write_csv(tmp_path / "d.csv", {"u": list(u) + [0.5], "y": col + [None]})
+    with pytest.raises(DataFileError, match="N=61 samples, not a multiple of F=3"):
+        read_measurement(path, F=3)
+    col[5] = 1.0
+    path = write_csv(tmp_path / "e.csv", {"u": u, "y": col})
+    with pytest.raises(DataFileError, match=r"values between the slow samples, the "
+                       r"first at line 7"):
+        read_measurement(path, F=3)
+
+
+def test_non_numeric_cells(tmp_path, good):
+    u, y = good
+    u_text = [repr(float(v)) for v in u]
+    u_text[3] = "12 N"
+    path = write_csv(tmp_path / "d.csv", {"u": u_text, "y": fast_column(y, 3)})
+    with pytest.raises(DataFileError, match=r"non-numeric cell '12 N' in column 'u' "
+                       r"at line 5\. Use numbers"):
+        read_measurement(path, F=3)
+    y_col = fast_column([repr(float(v)) for v in y], 3)
+    y_col[6] = "1,5"
+    path = write_csv(tmp_path / "e.csv", {"u": u, "y": y_col}, delimiter=";")
+    with pytest.raises(DataFileError, match="non-numeric cell '1,5' in column 'y'"):
+        read_measurement(path, F=3)
+
+
+def test_bad_csv_structure(tmp_path):
+    (tmp_path / "empty.csv").write_text("")
+    with pytest.raises(DataFileError, match="is empty"):
+        read_measurement(tmp_path / "empty.csv", F=1)
+    (tmp_path / "header.csv").write_text("u,y\n")
+    with pytest.raises(DataFileError, match="no data rows"):
+        read_measurement(tmp_path / "header.csv", F=1)
+    (tmp_path / "noheader.csv").write_text("1,2\n3,4\n")
+    with pytest.raises(DataFileError, match="holds numbers, not column names"):
+        read_measurement(tmp_path / "noheader.csv", F=1)
+    (tmp_path / "binary.csv").write_bytes(b"u,y\n\xff\xfe\x00\x01,2\n")
+    with pytest.raises(DataFileError, match="is not a UTF-8 text file"):
+        read_measurement(tmp_path / "binary.csv", F=1)
+
+
+def test_constant_input(tmp_path):
+    write_csv(tmp_path / "d.csv", {"u": [1.0] * 6, "y": [1.0, 2.0]})
+    with pytest.raises(DataFileError, match="is constant"):
+        read_measurement(tmp_path / "d.csv", F=3)
+
+
+def test_size_limit(tmp_path, good, monkeypatch):
+    u, y = good
+    path = write_csv(tmp_path / "d.csv", {"u": u, "y": fast_column(y, 3)})
+    monkeypatch.setattr(lio, "CSV_CHUNK_ROWS", 16)
+    with pytest.raises(DataFileError, match="more than 50 data rows.*--max-samples"):
+        read_measurement(path, F=3, max_samples=50)
+    np.savez(tmp_path / "d.npz", u=u, y=y)
+    with pytest.raises(DataFileError, match="60 elements, more than the limit 50"):
+        read_measurement(tmp_path / "d.npz", F=3, max_samples=50)
+    scipy.io.savemat(tmp_path / "d.mat", {"u": u, "y": y})
+    with pytest.raises(DataFileError, match="60 elements, more than the limit 50"):
+        read_measurement(tmp_path / "d.mat", F=3, max_samples=50)
+
+
+def test_npz_is_loaded_without_pickles(tmp_path, good):
+    u, y = good
+    np.savez(tmp_path / "obj.npz", u=np.array([object()] * 60), y=y)
+    with pytest.raises(DataFileError, match=r"array 'u' is not numeric \(type object"):
+        read_measurement(tmp_path / "obj.npz", F=3)
+    np.savez(tmp_path / "cplx.npz", u=u + 1j, y=y)
+    with pytest.raises(DataFileError, match="array 'u' is complex"):
+        read_measurement(tmp_path / "cplx.npz", F=3)
+    np.savez(tmp_path / "twod.npz", u=u.reshape(6, 10), y=y)
+    with pytest.raises(DataFileError, match=r"shape \(6, 10\), not a non-empty vector"):
+        read_measurement(tmp_path / "twod.npz", F=3)
+    np.savez(tmp_path / "names.npz", x=u, y=y)
+    with pytest.raises(DataFileError, match=r"no array named 'u' \(the file has 'x', "
+                       r"'y'\)\. Pass the right name with --input-column"):
+        read_measurement(tmp_path / "names.npz", F=3)
+    (tmp_path / "junk.npz").write_bytes(b"not a zip file at all")
+    with pytest.raises(DataFileError, match="is not a readable .npz archive"):
+        read_measurement(tmp_path / "junk.npz", F=3)
+
+
+def test_mat_variables_are_validated(tmp_path, good):
+    u, y = good
+    scipy.io.savemat(tmp_path / "text.mat", {"u": "hello", "y": y})
+    with pytest.raises(DataFileError, match=r"variable 'u' is not numeric \(type char"):
+        read_measurement(tmp_path / "text.mat", F=3)
+    scipy.io.savemat(tmp_path / "cplx.mat", {"u": u, "y": y * 1j})
+    with pytest.raises(DataFileError, match="variable 'y' is complex"):
+        read_measurement(tmp_path / "cplx.mat", F=3)
+    scipy.io.savemat(tmp_path / "mat2d.mat", {"u": u.reshape(6, 10), "y": y})
+    with pytest.raises(DataFileError, match="not a non-empty vector"):
+        read_measurement(tmp_path / "mat2d.mat", F=3)
+    scipy.io.savemat(tmp_path / "names.mat", {"u": u, "z": y})
+    with pytest.raises(DataFileError, match=r"no variable named 'y'"):
+        read_measurement(tmp_path / "names.mat", F=3)
+    (tmp_path / "junk.mat").write_bytes(b"\x00" * 200)
+    with pytest.raises(DataFileError, match="is not a readable MATLAB file"):
+        read_measurement(tmp_path / "junk.mat", F=3)
+
+
+def test_bad_downsampling_factor():
+    with pytest.raises(ValueError, match="positive integer"):
+        read_measurement("whatever.csv", F=0)
+
+
+# --------------------------------------------------------------------------
+# Writing
+# --------------------------------------------------------------------------
+
+
+def test_atomic_open_writes_and_refuses_to_overwrite(tmp_path):
+    target = tmp_path / "a.bin"
+    with atomic_open(target) as fh:
+        fh.write(b"first")
+    assert target.read_bytes() == b"first"
+    with pytest.raises(FileExistsError, match="exists already. Pass --force"):
+        with atomic_open(target) as fh:
+            fh.write(b"second")
+    assert target.read_bytes() == b"first"
+    with atomic_open(target, overwrite=True) as fh:
+        fh.write(b"second")
+    assert target.read_bytes() == b"second"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.bin"]
+
+
+def test_atomic_open_leaves_target_intact_on_error(tmp_path):
+    target = tmp_path / "a.bin"
+    target.write_bytes(b"keep")
+    with pytest.raises(RuntimeError, match="boom"):
+        with atomic_open(target, overwrite=True) as fh:
+            fh.write(b"partial")
+            raise RuntimeError("boom")
+    assert target.read_bytes() == b"keep"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.bin"]
+
+
+def test_protected_input_is_never_replaced(tmp_path):
+    data = tmp_path / "frf.csv"
+    data.write_bytes(b"input")
+    with pytest.raises(ValueError, match="would replace the input file"):
+        check_output_path(data, overwrite=True, protect=[data])
+    with pytest.raises(ValueError, match="would replace the input file"):
+        with atomic_open(tmp_path / "." / "frf.csv", overwrite=True,
+                         protect=[str(data)]) as fh:
+            fh.write(b"x")
+    assert data.read_bytes() == b"input"
+    (tmp_path / "sub").mkdir()
+    with pytest.raises(ValueError, match="taken by a folder"):
+        check_output_path(tmp_path / "sub", overwrite=True)
+
+
+class _FakeFit:
+    def __init__(self, rng):
+        self.frequencies_ = np.linspace(0, 100, 11)
+        self.frf_ = rng.standard_normal(11) + 1j * rng.standard_normal(11)
+        self.frf_std_ = np.abs(rng.standard_normal(11))
+        self.valid_ = np.ones(11, bool)
+        self.valid_[3] = False
+        self.frf_[3] = np.nan
+        self.frf_std_[3] = np.nan
+
+
+def test_frf_table_known_answers():
+    fit = _FakeFit(np.random.default_rng(9))
+    table = frf_table(fit)
+    assert tuple(table) == FRF_COLUMNS
+    np.testing.assert_allclose(table["magnitude_db"], 20 * np.log10(np.abs(fit.frf_)))
+    np.testing.assert_allclose(table["phase_deg"],
+                               np.degrees(np.arctan2(fit.frf_.imag, fit.frf_.real)))
+    np.testing.assert_array_equal(table["valid"], fit.valid_)
+
+
+def test_write_frf_csv_and_npz_round_trip(tmp_path):
+    fit = _FakeFit(np.random.default_rng(10))
+    table = frf_table(fit)
+    csv_path = write_frf_csv(tmp_path / "frf.csv", table)
+    header = csv_path.read_text().splitlines()[0]
+    assert header == ",".join(FRF_COLUMNS)
+    back = np.loadtxt(csv_path, delimiter=",", skiprows=1)
+    for i, name in enumerate(FRF_COLUMNS):
+        # 10 significant digits are written: relative error below 1e-9.
+        np.testing.assert_allclose(back[:, i], table[name].astype(float),
+                                   rtol=1e-9, atol=0, equal_nan=True)
+    npz_path = write_frf_npz(tmp_path / "frf.npz", table,
+                             metadata={"method": "lrm", "F": 3})
+    with np.load(npz_path, allow_pickle=False) as saved:
+        np.testing.assert_array_equal(saved["frf"], fit.frf_)
+        assert str(saved["method"]) == "lrm" and int(saved["F"]) == 3
+    with pytest.raises(FileExistsError):
+        write_frf_csv(csv_path, table)
+    with pytest.raises(TypeError, match="must be a number or a string"):
+        write_frf_npz(tmp_path / "x.npz", table, metadata={"bad": object()})
+
+
+def test_file_sha256_matches_hashlib(tmp_path):
+    path = tmp_path / "f"
+    path.write_bytes(os.urandom(3000))
+    assert file_sha256(path, block_size=1000) == hashlib.sha256(
+        path.read_bytes()).hexdigest()

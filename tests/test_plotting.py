@@ -1,0 +1,231 @@
+"""Tests of lrmfrf.plotting: Bode plots with bands, error plots."""
+
+from __future__ import annotations
+
+import sys
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import control  # noqa: E402
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+from conftest import frf_of, simulate_resonant  # noqa: E402
+
+from lrmfrf import LRMBeyondNyquist, SpectralAnalysis  # noqa: E402
+from lrmfrf.plotting import frf_curve, plot_error, plot_frf  # noqa: E402
+from lrmfrf.signals import multisine  # noqa: E402
+
+
+@pytest.fixture(autouse=True)
+def _close_figures():
+    yield
+    plt.close("all")
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    """LRM fitted on the resonant test system (N=600, F=3), with its truth."""
+    rng = np.random.default_rng(11)
+    u = multisine(600, rng=rng)
+    y = simulate_resonant(u, 3, 1e-3, rng)
+    est = LRMBeyondNyquist(half_window=15, num_degree=3, transient_degree=3,
+                           den_degree=4).fit(u, y, 3, sample_time=0.5e-3)
+    return est
+
+
+def _band(axis):
+    """The vertices of the first filled band on an axis."""
+    collections = [c for c in axis.collections if c.get_paths()]
+    return collections
+
+
+def _nyquist_lines(axis):
+    return [
+        line for line in axis.get_lines()
+        if np.size(line.get_xdata()) == 2 and np.ptp(line.get_xdata()) == 0
+    ]
+
+
+def test_plot_frf_draws_magnitude_phase_and_slow_nyquist(fitted):
+    fig, axes = plot_frf(fitted, labels=["LRM"])
+    assert len(axes) == 2
+    assert [a.get_ylabel() for a in axes] == ["Magnitude [dB]", "Phase [deg]"]
+    mag_line = axes[0].get_lines()[0]
+    keep = fitted.frequencies_ > 0  # log axis leaves out 0 Hz
+    np.testing.assert_allclose(mag_line.get_xdata(), fitted.frequencies_[keep])
+    np.testing.assert_allclose(mag_line.get_ydata(),
+                               20 * np.log10(np.abs(fitted.frf_[keep])))
+    for axis in axes:
+        lines = _nyquist_lines(axis)
+        assert lines, "slow Nyquist line missing"
+        # 1 / (2 F Ts) = 1 / (2 * 3 * 0.5e-3) Hz
+        assert lines[0].get_xdata()[0] == pytest.approx(1 / (2 * 3 * 0.5e-3))
+    labels = [t.get_text() for t in axes[0].get_legend().get_texts()]
+    assert labels[0] == "LRM" and "slow Nyquist 333.3 Hz" in labels
+
+
+def test_std_band_is_magnitude_plus_minus_k_std_in_db():
+    f = np.linspace(1.0, 50.0, 50)
+    G = 10.0 / (1 + 1j * f / 10)
+    std = 0.05 * np.abs(G)
+    std[-1] = 2.0 * np.abs(G[-1])  # band wider than |G|: lower edge unbounded
+    fig, axes = plot_frf((f, G, std), std_band=2, slow_nyquist=False)
+    band = _band(axes[0])
+    assert len(band) == 1
+    vertices = band[0].get_paths()[0].vertices
+    upper = 20 * np.log10(np.abs(G) + 2 * std)
+    lower = 20 * np.log10(np.abs(G[:-1]) - 2 * std[:-1])
+    assert vertices[:, 1].max() == pytest.approx(upper.max())
+    # The band's lower edge at the last bin lies below the visible axis.
+    assert vertices[:, 1].min() < axes[0].get_ylim()[0]
+    # Every finite lower edge appears among the vertices.
+    ys = vertices[:, 1]
+    for value in lower[::7]:
+        assert np.min(np.abs(ys - value)) < 1e-9
+    # Phase band: +/- arcsin(2 std/|G|) = +/- arcsin(0.1) around the phase.
+    phase_band = _band(axes[1])[0].get_paths()[0].vertices
+    half = np.degrees(np.arcsin(0.1))
+    phase = np.angle(G[0], deg=True)
+    assert np.min(np.abs(phase_band[:, 1] - (phase + half))) < 1e-9
+    assert not _nyquist_lines(axes[0])
+
+
+def test_no_band_when_std_band_is_zero(fitted):
+    fig, axes = plot_frf(fitted, std_band=0)
+    assert not _band(axes[0])
+
+
+def test_true_system_and_several_estimates_share_axes(fitted):
+    from conftest import resonant_system
+
+    b, a = resonant_system()
+    system = control.tf(b, a, dt=0.5e-3)
+    # scipy lfilter coefficients are in powers of z^-1; as a tf in z they are
+    # the same arrays when numerator and denominator have equal length.
+    assert len(b) == len(a)
+    sa = SpectralAnalysis(segment_length=200, overlap=100)
+    rng = np.random.default_rng(12)
+    u = multisine(600, rng=rng)
+    sa.fit(u, simulate_resonant(u, 3, 1e-3, rng), 3, sample_time=0.5e-3)
+    fig, axes = plot_frf(fitted, sa, true=system, labels=["LRM", "SA"])
+    true_line = [ln for ln in axes[0].get_lines() if ln.get_label() == "true"][0]
+    x = true_line.get_xdata()
+    on_grid = np.isin(fitted.frequencies_, x)
+    assert on_grid[1:].all()
+    exact = frf_of(b, a, 600)
+    index = np.searchsorted(x, fitted.frequencies_[1:])
+    np.testing.assert_allclose(true_line.get_ydata()[index],
+                               20 * np.log10(np.abs(exact[1:])), rtol=1e-9)
+
+
+def test_frd_and_tuple_inputs():
+    omega = np.linspace(1, 100, 20)
+    G = 1 / (1 + 1j * omega / 30)
+    frd = control.FrequencyResponseData(G, omega, dt=1e-3)
+    curve = frf_curve(frd)
+    np.testing.assert_allclose(curve.frequencies, omega / (2 * np.pi))
+    np.testing.assert_allclose(curve.frf, G)
+    assert curve.std is None and curve.sample_time == 1e-3
+    fig, axes = plot_frf(frd, (omega / (2 * np.pi), G), slow_nyquist=5.0)
+    assert _nyquist_lines(axes[0])[0].get_xdata()[0] == 5.0
+
+
+def test_invalid_bins_leave_gaps(fitted):
+    import copy
+
+    est = copy.deepcopy(fitted)
+    est.valid_ = est.valid_.copy()
+    est.valid_[100:120] = False
+    fig, axes = plot_frf(est)
+    y = axes[0].get_lines()[0].get_ydata()
+    # frequencies_ > 0 drops bin 0, so bins 100..119 are points 99..118
+    assert np.isnan(y[99:119]).all() and np.isfinite(y[:99]).all()
+
+
+def test_plot_into_given_axes_and_max_points(fitted):
+    fig, axes = plt.subplots(2, 1)
+    out_fig, out_axes = plot_frf(fitted, ax=axes, max_points=50)
+    assert out_fig is fig
+    n = out_axes[0].get_lines()[0].get_xdata().size
+    assert 10 <= n <= 50
+
+
+def test_bad_arguments(fitted):
+    with pytest.raises(ValueError, match="at least one FRF"):
+        plot_frf()
+    with pytest.raises(ValueError, match="not fitted"):
+        plot_frf(LRMBeyondNyquist())
+    with pytest.raises(TypeError, match="Cannot plot an object of type str"):
+        plot_frf("frf")
+    with pytest.raises(ValueError, match="2 labels for 1 FRFs"):
+        plot_frf(fitted, labels=["a", "b"])
+    with pytest.raises(ValueError, match="std_band must be a non-negative"):
+        plot_frf(fitted, std_band=-1)
+    with pytest.raises(ValueError, match="xscale must be"):
+        plot_frf(fitted, xscale="symlog")
+    fig, axis = plt.subplots()
+    with pytest.raises(ValueError, match="ax must be two Axes"):
+        plot_frf(fitted, ax=axis)
+    with pytest.raises(ValueError, match="slow_nyquist must be a positive"):
+        plot_frf(fitted, slow_nyquist=-3.0)
+    with pytest.raises(ValueError, match="must lie on the first FRF's grid"):
+        plot_frf(fitted, true=np.ones(5, complex))
+    with pytest.raises(ValueError, match="1-D of equal length"):
+        plot_frf((np.arange(3.0), np.ones(4)))
+    mimo = control.FrequencyResponseData(np.ones((2, 1, 3)), [1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match="Only SISO FRDs"):
+        plot_frf(mimo)
+
+
+def test_missing_matplotlib_gives_install_hint(monkeypatch, fitted):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    monkeypatch.setitem(sys.modules, "matplotlib.pyplot", None)
+    with pytest.raises(ImportError, match=r'pip install "lrmfrf\[plot\]"'):
+        plot_frf(fitted)
+
+
+# --------------------------------------------------------------------------
+# plot_error
+# --------------------------------------------------------------------------
+
+
+def test_plot_error_relative_known_answer():
+    pytest.importorskip("lrmfrf.metrics")
+    f = np.linspace(0, 100, 11)
+    G = np.full(11, 2.0 + 0j)
+    estimate = G * 1.1
+    fig, ax = plot_error(G, estimate, frequencies=f, kind="relative",
+                         labels=["x"], slow_nyquist=False)
+    line = ax.get_lines()[0]
+    np.testing.assert_allclose(line.get_ydata(), 0.1, rtol=1e-12)
+    np.testing.assert_allclose(line.get_xdata(), f[1:])
+
+
+def test_plot_error_cumulative_matches_metrics(fitted):
+    metrics = pytest.importorskip("lrmfrf.metrics")
+    from conftest import resonant_system
+
+    b, a = resonant_system()
+    G = frf_of(b, a, 600)
+    fig, ax = plot_error(G, fitted, kind="cumulative", labels=["LRM"])
+    expected = np.asarray(metrics.cumulative_error(G, fitted.frf_, 600))
+    # Known answer, eq. (CPSD): (1/N) sum_{k=1}^{n} |G - Ghat|.
+    direct = np.concatenate([[0.0], np.cumsum(np.abs(G - fitted.frf_)[1:])]) / 600
+    np.testing.assert_allclose(expected, direct, rtol=1e-12)
+    np.testing.assert_allclose(ax.get_lines()[0].get_ydata(), expected[1:])
+    assert _nyquist_lines(ax)
+
+
+def test_plot_error_bad_arguments(fitted):
+    with pytest.raises(ValueError, match="kind must be 'cumulative' or 'relative'"):
+        plot_error(np.ones(3), np.ones(3), frequencies=np.arange(3.0), kind="abs")
+    with pytest.raises(ValueError, match="at least one estimate"):
+        plot_error(np.ones(3))
+    pytest.importorskip("lrmfrf.metrics")
+    with pytest.raises(ValueError, match="need their frequencies"):
+        plot_error(np.ones(3), np.ones(3))
+    with pytest.raises(ValueError, match="Pass the true system"):
+        plot_error(np.ones(3), fitted)
