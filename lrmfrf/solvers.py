@@ -10,9 +10,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .windows import LocalModelLayout, StructuredWindows, local_regressor
+
 __all__ = [
     "LocalSolution",
     "solve_local_least_squares",
+    "solve_local_normal_equations",
     "noise_variance",
     "lemma2_variance",
 ]
@@ -20,6 +23,17 @@ __all__ = [
 #: Default relative threshold on the diagonal of R (equilibrated QR) below
 #: which a local problem is declared rank-deficient.
 RANK_TOL = 1e-10
+
+#: Windows whose equilibrated Cholesky factor has ``min L_jj`` below this are
+#: re-solved by QR in the fast solver (normal equations would lose too many
+#: digits there, and the QR rank test decides whether they are well posed).
+CHOLESKY_FALLBACK_TOL = 1e-6
+
+#: Windows whose last iterative-refinement correction is larger than this
+#: (relative, in equilibrated parameters) are re-solved by QR in the fast
+#: solver: the correction estimates the error of the normal equations, which
+#: is the square of the error left after it while refinement converges.
+REFINEMENT_TOL = 1e-5
 
 
 @dataclass
@@ -53,6 +67,7 @@ def solve_local_least_squares(
     *,
     rank_tol: float = RANK_TOL,
     return_leverage: bool = False,
+    rank_columns: int | None = None,
 ) -> LocalSolution:
     """Solve the closed form eq. (linearSolution) for a batch of windows.
 
@@ -70,6 +85,15 @@ def solve_local_least_squares(
         max |R_jj|``, or a column of zeros, is declared not well posed.
     return_leverage : bool, default=False
         Also return the diagonal of the hat matrix (for PRESS).
+    rank_columns : int, optional
+        Apply the rank test only to the leading ``rank_columns`` columns
+        (default: all). The local models pass the input and transient columns:
+        those decide whether ``G`` is identifiable. A rank-deficient
+        denominator block (an over-parameterised model on noise-free data: a
+        common factor of numerators and denominator) leaves ``G(k+fM)`` unique,
+        because ``e(0) = 1`` fixes the factor's value at the window centre, and
+        is not flagged. Exactly-zero columns beyond the block get a zero
+        coefficient.
 
     Returns
     -------
@@ -80,15 +104,18 @@ def solve_local_least_squares(
     safe_norms = np.where(zero_column, 1.0, norms)
     Q, R = np.linalg.qr(A / safe_norms[:, None, :])
     diag = np.abs(np.diagonal(R, axis1=1, axis2=2))
-    well_posed = ~zero_column.any(axis=1) & (
-        diag.min(axis=1) > rank_tol * diag.max(axis=1)
-    )
     p = A.shape[2]
+    m = p if rank_columns is None else rank_columns
+    well_posed = ~zero_column[:, :m].any(axis=1) & (
+        diag[:, :m].min(axis=1) > rank_tol * diag[:, :m].max(axis=1)
+    )
     R = np.where(well_posed[:, None, None], R, np.eye(p))
+    idx = np.arange(p)
+    R[:, idx, idx] = np.where(diag == 0, 1.0, R[:, idx, idx])  # zero columns
     R_inv = np.linalg.inv(R)
     qhb = np.einsum("bij,bi->bj", Q.conj(), b)
     z = np.einsum("bij,bj->bi", R_inv, qhb)
-    theta = z / safe_norms
+    theta = np.where(zero_column, 0.0, z / safe_norms)
     gram_inv_diag = np.sum(np.abs(R_inv) ** 2, axis=2) / safe_norms**2
     residual = b - np.einsum("bij,bj->bi", A, theta)
     rss = np.sum(np.abs(residual) ** 2, axis=1)
@@ -142,3 +169,146 @@ def lemma2_variance(
     ndarray of shape (B, F)
     """
     return F**2 * gram_inv_diag_system * noise_var[:, None]
+
+
+def solve_local_normal_equations(
+    U: np.ndarray,
+    Y: np.ndarray,
+    slow_bins: np.ndarray,
+    layout: LocalModelLayout,
+    *,
+    rank_tol: float = RANK_TOL,
+    refine_steps: int = 1,
+    fallback_tol: float = CHOLESKY_FALLBACK_TOL,
+    rank_columns: int | None = None,
+) -> LocalSolution:
+    """Fast closed form eq. (linearSolution) by structured normal equations.
+
+    Same problems and results as ``solve_local_least_squares(*local_regressor(
+    U, Y, slow_bins, layout))`` without building ``A``: the Gram matrices of
+    all windows come from sliding weighted sums (:class:`~lrmfrf.windows.
+    StructuredWindows`), in a basis of polynomials orthonormal on the window;
+    they are equilibrated, Cholesky-factorised in batch, and the solution is
+    improved by ``refine_steps`` steps of iterative refinement with the
+    explicit residual ``b - A theta`` (which recovers the accuracy lost to
+    squaring the condition number). Windows whose equilibrated factor has
+    ``min L_jj < fallback_tol`` (near rank deficiency) are re-solved by
+    Householder QR, which also applies the ``rank_tol`` test to them; so are
+    windows whose last refinement correction exceeds ``REFINEMENT_TOL``
+    relative (ill-conditioned for the normal equations, e.g. a denominator
+    degree far above the system's).
+
+    Parameters
+    ----------
+    U : ndarray of shape (P, N), complex
+    Y : ndarray of shape (P, M), complex
+    slow_bins : ndarray of shape (B,), int, in ``0..M-1``
+    layout : LocalModelLayout
+    rank_tol : float, default=1e-10
+        QR rank test of the fallback windows, as in
+        :func:`solve_local_least_squares`.
+    refine_steps : int, default=1
+        Iterative-refinement steps (each costs one residual and one pair of
+        triangular solves). With 0, ill-conditioning is only detected through
+        ``fallback_tol``.
+    fallback_tol : float, default=1e-6
+    rank_columns : int, optional
+        Passed to the QR fallback (see :func:`solve_local_least_squares`).
+
+    Returns
+    -------
+    LocalSolution
+        ``theta`` in monomial coefficients and layout order; ``gram_inv_diag``
+        is exact at the window-centre columns (``G(k+fM)/F`` and ``T(k)``,
+        columns ``0..F-1`` and ``layout.transient_column(p)``) and NaN at the
+        other columns (use :func:`solve_local_least_squares` for those);
+        ``leverage`` is None.
+    """
+    slow_bins = np.asarray(slow_bins, dtype=int)
+    windows = StructuredWindows(U, Y, slow_bins, layout)
+    gram, rhs, _ = windows.normal_equations()
+    # Cholesky is invariant to diagonal scaling (van der Sluis): factor the raw
+    # Gram and read the equilibrated pivots as L_jj / sqrt(G_jj).
+    scale = np.sqrt(np.abs(np.real(np.diagonal(gram, axis1=1, axis2=2))))
+    zero_column = ~(scale > np.finfo(float).tiny)
+    scale = np.where(zero_column, 1.0, scale)
+    chol = _batched_cholesky(gram)
+    del gram
+    pivots = np.real(np.diagonal(chol, axis1=1, axis2=2)) / scale
+    with np.errstate(invalid="ignore"):
+        fast = ~zero_column.any(axis=1) & np.all(pivots > fallback_tol, axis=1)
+    if not fast.all():
+        chol[~fast] = np.eye(layout.n_params)
+    chol_t = np.ascontiguousarray(chol.transpose(1, 2, 0))
+
+    theta = _cholesky_solve(chol_t, rhs)
+    for step in range(refine_steps + 1):
+        res = windows.residual(theta)
+        rss = np.sum(res.real**2 + res.imag**2, axis=(0, 2))
+        if step == refine_steps:
+            break
+        correction = windows.adjoint(res)
+        delta = _cholesky_solve(chol_t, correction)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            change = np.linalg.norm(delta * scale, axis=1) / np.linalg.norm(
+                theta * scale, axis=1
+            )
+        theta += delta
+        # ||r - A delta||^2 = ||r||^2 - Re(delta^H A^H r) at the refined solution
+        rss = rss - np.real(np.sum(np.conj(delta) * correction, axis=1))
+    del res
+    if refine_steps > 0:
+        fast &= change <= REFINEMENT_TOL
+
+    n_centre = layout.F + layout.n_experiments
+    tail = chol[:, -n_centre:, -n_centre:]
+    tail_inv = np.linalg.inv(tail)
+    centre_var = np.sum(tail_inv.real**2 + tail_inv.imag**2, axis=1)
+    gram_inv_diag = np.full((slow_bins.size, layout.n_params), np.nan)
+    gram_inv_diag[:, windows.order[-n_centre:]] = centre_var
+    theta = windows.to_layout(theta)
+    well_posed = fast.copy()
+
+    slow = np.flatnonzero(~fast)
+    if slow.size:
+        A, b = local_regressor(U, Y, slow_bins[slow], layout)
+        qr = solve_local_least_squares(
+            A, b, rank_tol=rank_tol, rank_columns=rank_columns
+        )
+        theta[slow] = qr.theta
+        gram_inv_diag[slow] = qr.gram_inv_diag
+        rss[slow] = qr.rss
+        well_posed[slow] = qr.well_posed
+    return LocalSolution(theta, gram_inv_diag, rss, well_posed, None)
+
+
+def _batched_cholesky(gram: np.ndarray) -> np.ndarray:
+    """Lower Cholesky factors; NaN (not an exception) where one fails."""
+    try:
+        return np.linalg.cholesky(gram)
+    except np.linalg.LinAlgError:
+        pass
+    out = np.full_like(gram, np.nan)
+    for i in range(gram.shape[0]):
+        try:
+            out[i] = np.linalg.cholesky(gram[i])
+        except np.linalg.LinAlgError:
+            continue
+    return out
+
+
+def _cholesky_solve(chol_t: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Solve ``L L^H z = rhs`` for a batch by forward and back substitution.
+
+    ``chol_t`` is the batch of lower factors with the batch axis last, shape
+    (p, p, B), so that every step works on contiguous rows.
+    """
+    p = chol_t.shape[0]
+    z = np.array(rhs.T, dtype=complex, order="C")  # (p, B)
+    for j in range(p):
+        z[j] /= chol_t[j, j]
+        z[j + 1 :] -= chol_t[j + 1 :, j] * z[j]
+    for j in range(p - 1, -1, -1):
+        z[j] -= np.sum(np.conj(chol_t[j + 1 :, j]) * z[j + 1 :], axis=0)
+        z[j] /= chol_t[j, j]
+    return z.T

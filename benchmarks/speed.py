@@ -1,0 +1,320 @@
+"""Speed and memory of the local-model estimators on long records (issue 7).
+
+Every case runs in its own subprocess (clean peak-memory accounting with
+``resource.getrusage``: peak RSS during the fit minus the RSS before it).
+Data: the OAT-like wafer stage ``G_y4`` of :mod:`lrmfrf.plants` driven by a
+random-phase multisine, 45 dB output SNR, simulated with
+:func:`lrmfrf.simulate.simulate` (falls back to a lightly damped 6th-order
+``scipy.signal`` system if those modules are missing).
+
+Cases per record length ``N`` (F = 3 unless stated):
+
+- ``LRM``: ``LRMBeyondNyquist()`` (R_g = R_t = 4, R_e = 7, n = 18), the
+  default solver (structured normal equations);
+- ``LRM qr``: ``fit_local_models(..., solver="qr")`` (batched QR);
+- ``LRM loop``: a per-bin ``numpy.linalg.lstsq`` loop on a subset of bins,
+  extrapolated to all ``M//2+1`` bins (the straightforward baseline);
+- ``LPM``: ``LPMBeyondNyquist()`` (degree 2, n = 18);
+- ``SA``: ``SpectralAnalysis()``; ``scipy csd``: ``scipy.signal.csd`` and
+  ``welch`` on ``u`` and zero-stuffed ``y`` (same segments);
+- ``LRM SK10``: ``LRMBeyondNyquist(sk_iterations=10)`` when implemented.
+
+Plus LRM at ``F in {2, 5, 10}`` for ``N = 1.2e5`` (the half window grows to
+keep 10 residual degrees of freedom when ``F`` needs it).
+
+Run::
+
+    python benchmarks/speed.py            # N up to 1.2e6, about 2-4 minutes
+    python benchmarks/speed.py --huge     # also N = 1.2e7 (LRM, LPM, SA)
+    python benchmarks/speed.py --quick    # N up to 1.2e5 (smoke test)
+
+Prints a markdown table and writes ``benchmarks/results/speed.csv``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import resource
+import subprocess
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+RESULTS = Path(__file__).resolve().parent / "results"
+LOOP_BINS = 300  # bins timed in the per-bin baseline
+CHECK_BINS = 400  # bins compared against QR for the accuracy column
+
+
+# --------------------------------------------------------------------------
+# data
+# --------------------------------------------------------------------------
+
+
+def make_data(n_samples: int, F: int, seed: int = 0):
+    """Wafer-stage (or fallback) data: fast input u (N,), slow output y (M,)."""
+    from lrmfrf.signals import multisine
+
+    rng = np.random.default_rng(seed)
+    u = multisine(n_samples, rng=rng)
+    try:
+        from lrmfrf.plants import wafer_stage
+        from lrmfrf.simulate import simulate
+
+        stage = wafer_stage()
+        y = simulate(stage.G_y4, u, F, snr_db=45.0, rng=rng).y_l
+        return u, y, "wafer stage G_y4, 45 dB"
+    except Exception:  # noqa: BLE001 - any missing piece: use the fallback plant
+        from scipy.signal import sosfilt
+
+        y = sosfilt(_fallback_sos(), u)[::F]
+        y = y + 10 ** (-45 / 20) * np.std(y) * rng.standard_normal(y.shape)
+        return u, y, "6th-order sos fallback, 45 dB"
+
+
+def _fallback_sos(sample_time: float = 0.5e-3):
+    """Three lightly damped modes (90, 235, 440 Hz) in parallel, ZOH, as sos."""
+    from scipy.linalg import block_diag
+    from scipy.signal import cont2discrete, ss2zpk, zpk2sos
+
+    blocks, inputs, outputs = [], [], []
+    modes = [(90.0, 0.02, 1.0), (235.0, 0.008, 0.5), (440.0, 0.012, 0.4)]
+    for freq, zeta, gain in modes:
+        w = 2 * np.pi * freq
+        blocks.append(np.array([[0.0, 1.0], [-w * w, -2 * zeta * w]]))
+        inputs.append(np.array([[0.0], [1.0]]))
+        outputs.append(np.array([[gain * w * w, 0.0]]))
+    system = (
+        block_diag(*blocks), np.vstack(inputs), np.hstack(outputs), np.zeros((1, 1))
+    )
+    a, b, c, d, _ = cont2discrete(system, sample_time, method="zoh")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return zpk2sos(*ss2zpk(a, b, c, d))
+
+
+def lrm_half_window(F: int, dof: int = 10) -> int:
+    """n = 18, or larger so that the (4, 4, 7) model keeps ``dof`` spare rows."""
+    needed = 5 * F + 5 + 7 + dof
+    return max(18, math.ceil((needed - 1) / 2))
+
+
+# --------------------------------------------------------------------------
+# one case (child process)
+# --------------------------------------------------------------------------
+
+
+def run_case(method: str, n_samples: int, F: int) -> dict:
+    from lrmfrf import LPMBeyondNyquist, LRMBeyondNyquist, SpectralAnalysis
+
+    u, y, data = make_data(n_samples, F)
+    M = y.size
+    n = lrm_half_window(F)
+    base_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    out = {"method": method, "N": n_samples, "F": F, "n": n, "data": data}
+    extra = {}
+    t0 = time.perf_counter()
+    c0 = time.process_time()
+    if method == "LRM":
+        est = LRMBeyondNyquist(half_window=n).fit(u, y, F)
+        extra["check"] = est
+    elif method == "LRM SK10":
+        try:
+            LRMBeyondNyquist(half_window=n, sk_iterations=10).fit(u, y, F)
+        except NotImplementedError:
+            return {**out, "skipped": "sk_iterations not implemented"}
+    elif method == "LRM qr":
+        from lrmfrf.local_models import fit_local_models
+        from lrmfrf.windows import LocalModelLayout
+
+        layout = LocalModelLayout(F, n, 4, 4, 7)
+        fit_local_models(np.fft.fft(u)[None], np.fft.fft(y)[None], layout, solver="qr")
+    elif method == "LPM":
+        LPMBeyondNyquist().fit(u, y, F)
+    elif method == "SA":
+        SpectralAnalysis().fit(u, y, F)
+    elif method == "scipy csd":
+        from scipy.signal import csd, welch
+
+        y_fast = np.zeros(n_samples)
+        y_fast[::F] = F * y
+        kw = {"nperseg": 200, "noverlap": 100, "window": "hann", "detrend": False}
+        _, s_yu = csd(u, y_fast, **kw)
+        _, s_uu = welch(u, **kw)
+        _ = s_yu / s_uu
+    elif method == "LRM loop":
+        elapsed, cpu = _per_bin_loop(u, y, F, n)
+        out.update(fit_s=elapsed * (M // 2 + 1), cpu_s=cpu * (M // 2 + 1))
+        out["extrapolated"] = True
+    else:
+        raise ValueError(f"unknown method {method!r}")
+    if "fit_s" not in out:
+        out["fit_s"] = time.perf_counter() - t0
+        out["cpu_s"] = time.process_time() - c0
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    out["peak_extra_mb"] = (peak - base_rss) / 1024  # ru_maxrss is in KiB on Linux
+    out["slow_bins_per_s"] = (M // 2 + 1) / out["cpu_s"]
+    if "check" in extra:
+        out["max_rel_diff_vs_qr"] = _compare_with_qr(u, y, F, n, extra["check"])
+    return out
+
+
+def _per_bin_loop(u, y, F, n) -> float:
+    """Seconds per slow bin of a plain loop: build A, equilibrate, lstsq."""
+    from lrmfrf.windows import LocalModelLayout, local_regressor
+
+    layout = LocalModelLayout(F, n, 4, 4, 7)
+    U, Y = np.fft.fft(u)[None], np.fft.fft(y)[None]
+    M = Y.shape[1]
+    bins = np.linspace(0, M // 2, min(LOOP_BINS, M // 2 + 1)).astype(int)
+    t0 = time.perf_counter()
+    c0 = time.process_time()
+    for k in bins:
+        A, b = local_regressor(U, Y, np.array([k]), layout)
+        norms = np.linalg.norm(A[0], axis=0)
+        theta = np.linalg.lstsq(A[0] / norms, b[0], rcond=None)[0] / norms
+        _ = F * theta[:F]
+    wall = (time.perf_counter() - t0) / bins.size
+    return wall, (time.process_time() - c0) / bins.size
+
+
+def _compare_with_qr(u, y, F, n, est) -> float:
+    """Max relative difference of frf_ against a per-bin QR solve (subset)."""
+    from lrmfrf.solvers import solve_local_least_squares
+    from lrmfrf.windows import LocalModelLayout, local_regressor
+
+    layout = LocalModelLayout(F, n, 4, 4, 7)
+    U, Y = np.fft.fft(u)[None], np.fft.fft(y)[None]
+    M = Y.shape[1]
+    bins = np.unique(np.linspace(0, M // 2, min(CHECK_BINS, M // 2 + 1)).astype(int))
+    sol = solve_local_least_squares(*local_regressor(U, Y, bins, layout))
+    reference = F * sol.theta[:, :F]  # G(k + fM), bins k <= M//2
+    fast = est.local_fit_.system[bins]
+    return float(np.nanmax(np.abs(fast - reference) / np.abs(reference)))
+
+
+# --------------------------------------------------------------------------
+# driver
+# --------------------------------------------------------------------------
+
+
+def cases(args) -> list[tuple[str, int, int]]:
+    sizes = [1200, 12_000, 120_000] + ([] if args.quick else [1_200_000])
+    out = []
+    for N in sizes:
+        out += [(m, N, 3) for m in ("LRM", "LRM loop", "LPM", "SA", "scipy csd")]
+        if N <= 120_000 or args.sk_all:
+            out.append(("LRM SK10", N, 3))
+        if N <= 120_000 or args.qr_all:
+            out.append(("LRM qr", N, 3))
+    if args.huge:
+        out += [(m, 12_000_000, 3) for m in ("LRM", "LPM", "SA", "scipy csd")]
+    out += [("LRM", 120_000, F) for F in (2, 5, 10)]
+    return out
+
+
+def run_child(method: str, N: int, F: int) -> dict:
+    cmd = [sys.executable, __file__, "--child", json.dumps([method, N, F])]
+    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, check=False)
+    if proc.returncode != 0:
+        return {"method": method, "N": N, "F": F, "error": proc.stderr.strip()[-300:]}
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def markdown(rows: list[dict]) -> str:
+    head = (
+        "| method | N | F | n | fit wall (s) | fit CPU (s) | slow bins/s (CPU) | "
+        "peak extra MB | max rel diff vs QR | note |\n"
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"
+    )
+    lines = [head]
+    for r in rows:
+        note = r.get("skipped") or r.get("error", "")[:60]
+        if r.get("extrapolated"):
+            note = f"extrapolated from {LOOP_BINS} bins"
+        fit = f"{r['fit_s']:.3g}" if "fit_s" in r else ""
+        cpu = f"{r['cpu_s']:.3g}" if "cpu_s" in r else ""
+        rate = f"{r['slow_bins_per_s']:.3g}" if "slow_bins_per_s" in r else ""
+        mem = f"{r['peak_extra_mb']:.0f}" if "peak_extra_mb" in r else ""
+        diff = f"{r['max_rel_diff_vs_qr']:.1e}" if "max_rel_diff_vs_qr" in r else ""
+        lines.append(
+            f"| {r['method']} | {r['N']:.3g} | {r['F']} | {r.get('n', '')} | {fit} | "
+            f"{cpu} | {rate} | {mem} | {diff} | {note} |"
+        )
+    return "\n".join(lines)
+
+
+def summary(rows: list[dict]) -> str:
+    """The issue-7 targets from this run, on wall and on CPU time."""
+
+    def get(method, N, key, F=3):
+        for r in rows:
+            if r["method"] == method and r["N"] == N and r["F"] == F and key in r:
+                return r[key]
+        return float("nan")
+
+    big = 1_200_000 if get("LRM", 1_200_000, "fit_s") > 0 else 120_000
+    lines = []
+    for key, label in (("fit_s", "wall"), ("cpu_s", "CPU")):
+        lrm = get("LRM", big, key)
+        lines += [
+            f"- [{label}] LRM fit at N = {big:.3g}: {lrm:.2f} s "
+            "(target <= 5 s, aim 2 s)",
+            f"- [{label}] per-bin loop / LRM: {get('LRM loop', big, key) / lrm:.1f}x "
+            "(target >= 20x)",
+            f"- [{label}] LRM / SA: {lrm / get('SA', big, key):.1f}x "
+            "(target <= 30x, aim 10x); LRM / scipy csd: "
+            f"{lrm / get('scipy csd', big, key):.1f}x",
+        ]
+        if big == 1_200_000:
+            lines.append(
+                f"- [{label}] time(1.2e6) / time(1.2e5): "
+                f"{lrm / get('LRM', 120_000, key):.1f} (target <= 12)"
+            )
+    return "\n".join(lines)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="N up to 1.2e5 only")
+    parser.add_argument("--huge", action="store_true", help="also N = 1.2e7")
+    parser.add_argument("--qr-all", action="store_true", help="batched QR at every N")
+    parser.add_argument("--sk-all", action="store_true", help="SK10 at every N")
+    parser.add_argument("--child", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.child:
+        method, N, F = json.loads(args.child)
+        print(json.dumps(run_case(method, N, F)))
+        return
+    rows = []
+    for method, N, F in cases(args):
+        row = run_child(method, N, F)
+        rows.append(row)
+        status = row.get("fit_s", row.get("skipped", row.get("error", "")))
+        print(f"{method:10s} N={N:<9d} F={F:<3d} {status}", file=sys.stderr)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    fields = ["method", "N", "F", "n", "fit_s", "cpu_s", "slow_bins_per_s",
+              "peak_extra_mb",
+              "max_rel_diff_vs_qr", "extrapolated", "skipped", "error", "data"]
+    with open(RESULTS / "speed.csv", "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+    print(f"Data: {rows[0].get('data', '?')}; {os.cpu_count()} CPUs.\n")
+    print(markdown(rows))
+    print()
+    print(summary(rows))
+
+
+if __name__ == "__main__":
+    main()
