@@ -19,6 +19,7 @@ __all__ = [
     "check_record_stack",
     "check_local_degrees",
     "check_nonnegative_int",
+    "check_positive_float",
 ]
 
 
@@ -216,3 +217,22 @@ def check_local_degrees(
         "transient_degree": Rt,
         "den_degree": Re,
     }
+
+
+def check_positive_float(value, name: str, *, allow_none: bool):
+    """``value`` as a positive finite float (or None when allowed)."""
+    if value is None and allow_none:
+        return None
+    hint = " or None" if allow_none else ""
+    try:
+        number = float(value)
+    except (TypeError, ValueError) as exc:
+        raise TypeError(
+            f"`{name}` must be a positive number{hint}. Got {value!r}."
+        ) from exc
+    if not np.isfinite(number) or number <= 0:
+        raise ValueError(
+            f"`{name}` must be a positive, finite number{hint}. Got {value!r}. "
+            "Use the default unless you have a reason not to."
+        )
+    return number

@@ -116,14 +116,6 @@ def test_bad_sample_time(data):
         LRMBeyondNyquist().fit(u, y, 3, sample_time=-1.0)
 
 
-def test_refinement_not_yet_available_is_explicit(data):
-    u, y = data
-    try:
-        LRMBeyondNyquist(sk_iterations=2).fit(u, y, 3)
-    except NotImplementedError as exc:  # until refinement lands
-        assert "sk_iterations" in str(exc)
-
-
 def test_inputs_not_modified(data):
     u, y = data
     u0, y0 = u.copy(), y.copy()

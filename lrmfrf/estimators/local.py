@@ -14,10 +14,12 @@ import numpy as np
 from .._validation import (
     check_local_degrees,
     check_nonnegative_int,
+    check_positive_float,
     check_records,
 )
 from ..exceptions import IdentifiabilityWarning
 from ..local_models import fit_local_models, one_sided_fast_grid
+from ..refinement import _emit_warnings, _refine
 from ..windows import LocalModelLayout
 from ._base import _BaseFRFEstimator
 
@@ -157,9 +159,23 @@ class LRMBeyondNyquist(_LocalModelEstimator):
     den_degree : int, default=7
         ``R_e``: degree of the common denominator.
     sk_iterations : int, default=0
-        Sanathanan-Koerner iterations after the closed form.
+        Maximum Sanathanan-Koerner iterations after the closed form
+        (eq. LinearizedCostFunctionSK), e.g. 30. ``0`` with
+        ``lm_iterations=0`` gives the closed form exactly.
     lm_iterations : int, default=0
-        Levenberg-Marquardt iterations after SK.
+        Maximum Levenberg-Marquardt iterations on the original cost
+        eq. (CostFunction) after SK, e.g. 300.
+    tol : float, default=1e-6
+        A window stops iterating when its cost changes by less than ``tol``
+        (relative) in an iteration.
+    guard : float or None, default=0.5
+        Guard radius in slow bins: a refined iterate whose denominator gets a
+        root within ``guard`` bins of the window centre is rejected and the
+        window falls back to its last good estimate. ``None`` disables it.
+    jump : float or None, default=5.0
+        A refined iterate whose FRF moves more than ``jump`` closed-form
+        standard deviations away from the closed form is rejected likewise.
+        ``None`` disables it.
 
     Attributes
     ----------
@@ -180,6 +196,27 @@ class LRMBeyondNyquist(_LocalModelEstimator):
         Complex parameters per local problem.
     dof_ : int
         Residual degrees of freedom per local problem.
+    cost_history_ : ndarray of shape (1 + n_sk_iter_ + n_lm_iter_,) or None
+        Mean over the slow bins of the original least-squares cost
+        (eq. meanCosts, ``mu_OE``) after the closed form and after each SK,
+        then each LM iteration; None without refinement.
+    sk_cost_history_ : ndarray of shape (1 + n_sk_iter_,) or None
+        Mean SK cost ``mu_SK`` (the closed form's weighted cost first).
+    n_sk_iter_, n_lm_iter_ : int
+        Iterations run (fewer than requested when every window converged).
+    n_guarded_ : int
+        Slow bins where the guard rejected a refined iterate.
+
+    Notes
+    -----
+    After refinement, ``frf_std_`` is linearised at the final estimate (SK:
+    Lemma 2 on the reweighted regressor; LM: ``(J^H J)^-1``) with the noise
+    variance ``J_LS / dof_``. Iterative refinement is implemented in
+    :mod:`lrmfrf.refinement`. On the simulated wafer stage at 45 dB
+    (``benchmarks/refinement.py``, 100 runs) SK 30 lowered the mean cost by
+    about 84 % and the median FRF error by about 9 %; adding LM 300 lowered
+    the cost further (to about 13 %) but fitted noise and raised the median
+    error by 12-15 % over the closed form, so SK alone is recommended.
 
     References
     ----------
@@ -209,6 +246,9 @@ class LRMBeyondNyquist(_LocalModelEstimator):
         den_degree: int = 7,
         sk_iterations: int = 0,
         lm_iterations: int = 0,
+        tol: float = 1e-6,
+        guard: float | None = 0.5,
+        jump: float | None = 5.0,
     ):
         self.half_window = half_window
         self.num_degree = num_degree
@@ -216,6 +256,9 @@ class LRMBeyondNyquist(_LocalModelEstimator):
         self.den_degree = den_degree
         self.sk_iterations = sk_iterations
         self.lm_iterations = lm_iterations
+        self.tol = tol
+        self.guard = guard
+        self.jump = jump
 
     def _local_degrees(self) -> dict:
         return {
@@ -228,12 +271,24 @@ class LRMBeyondNyquist(_LocalModelEstimator):
     def _refine(self, U, Y, layout, local_fit):
         sk = check_nonnegative_int(self.sk_iterations, "sk_iterations")
         lm = check_nonnegative_int(self.lm_iterations, "lm_iterations")
-        if sk or lm:
-            raise NotImplementedError(
-                "Iterative refinement (sk_iterations, lm_iterations > 0) is not "
-                "available yet. Use sk_iterations=0 and lm_iterations=0."
-            )
-        return local_fit
+        tol = check_positive_float(self.tol, "tol", allow_none=False)
+        guard = check_positive_float(self.guard, "guard", allow_none=True)
+        jump = check_positive_float(self.jump, "jump", allow_none=True)
+        self.n_sk_iter_ = self.n_lm_iter_ = self.n_guarded_ = 0
+        self.cost_history_ = self.sk_cost_history_ = None
+        if not (sk or lm):
+            return local_fit
+        result = _refine(
+            U, Y, layout, local_fit, sk_iterations=sk, lm_iterations=lm, tol=tol,
+            guard=guard, jump=jump, keep_best=True, chunk_size=None,
+        )
+        _emit_warnings(result, stacklevel=3)  # -> the caller of fit
+        self.cost_history_ = result.cost_history
+        self.sk_cost_history_ = result.sk_cost_history
+        self.n_sk_iter_ = result.sk_iterations
+        self.n_lm_iter_ = result.lm_iterations
+        self.n_guarded_ = result.n_guarded
+        return result.local_fit
 
 
 class LPMBeyondNyquist(_LocalModelEstimator):
