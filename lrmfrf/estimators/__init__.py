@@ -1,6 +1,14 @@
-"""FRF estimators: LRM and LPM beyond Nyquist, and the spectral-analysis baseline."""
+"""FRF estimators: LRM and LPM beyond Nyquist, their closed-form selection, and the
+spectral-analysis baseline."""
 
 from .local import LPMBeyondNyquist, LRMBeyondNyquist
+from .selection import LPMBeyondNyquistCV, LRMBeyondNyquistCV
 from .spectral import SpectralAnalysis
 
-__all__ = ["LRMBeyondNyquist", "LPMBeyondNyquist", "SpectralAnalysis"]
+__all__ = [
+    "LRMBeyondNyquist",
+    "LPMBeyondNyquist",
+    "SpectralAnalysis",
+    "LRMBeyondNyquistCV",
+    "LPMBeyondNyquistCV",
+]

@@ -1,0 +1,543 @@
+"""Closed-form choice of the window and degrees of LRM/LPM for one data set.
+
+Like scikit-learn's ``RidgeCV``, every candidate setting is scored from a
+single solve of its local problems, without refitting on data subsets. Each
+local window is a linear least-squares problem ``A theta = b`` (eq. Kvector)
+with ``L`` complex equations (``P (2n+1)`` for ``P`` experiments) and ``p``
+complex parameters. Three criteria are available:
+
+``"aicc"`` (default)
+    Small-sample corrected AIC of a linear smoother (Hurvich, Simonoff and Tsai,
+    1998), in its complex-valued form:
+    ``log(sigma^2) + (L + p) / (L - p - 1)`` with ``sigma^2`` the residual
+    variance per equation, averaged over all windows.
+``"gcv"``
+    Generalised cross-validation: ``sigma^2 / (1 - p/L)^2``.
+``"press"``
+    Exact leave-one-out of the *centre* equation of every window,
+    ``e_c / (1 - h_cc)`` with ``h`` the hat-matrix diagonal: the error of
+    predicting ``Y_l(k)`` from the other equations of the window centred on
+    ``k``. Every candidate predicts each slow bin exactly once, and at the
+    centre the denominator ``D(0) = 1``, so it is an output error in units of
+    ``Y_l`` comparable across windows and degrees.
+
+Why AICc is the default (measured with ``benchmarks/selection.py``: wafer
+stage, N = 1200, F = 3, 45 dB, 50 realisations, the default grid below): the
+error that matters is that of the *de-aliased* band values ``G(k + fM)``,
+while all three criteria measure how well the model reproduces the *aliased*
+output. Centre-bin PRESS rewards settings that predict the aliased sum well
+even when the bands are poorly separated; it is also noisy (one equation per
+window), and its choices had 1.25x the median relative error of the best fixed
+setting of the grid. GCV ranks candidates better, but its ``(1-p/L)^-2``
+penalty is too weak when ``p/L`` is large (here 0.5-0.75; the linearised
+residual also shrinks as the denominator degree grows, since the fit can make
+``D(x)`` small away from the centre): 1.10-1.18x. AICc, whose penalty grows as
+``1/(L - p)``, gave 0.99-1.01x (the paper's Table I setting: 1.19-1.28x).
+Leave-one-out over all equations of the window, and residuals divided by
+``D(x)`` to make them output errors, were also tried and were worse.
+
+References
+----------
+C. M. Hurvich, J. S. Simonoff and C.-L. Tsai, "Smoothing parameter selection
+in nonparametric regression using an improved Akaike information criterion",
+J. R. Statist. Soc. B 60(2), 271-293, 1998.
+"""
+
+from __future__ import annotations
+
+import itertools
+import numbers
+from dataclasses import dataclass
+
+import numpy as np
+from joblib import Parallel, delayed
+from sklearn.base import clone
+
+from .._validation import (
+    check_local_degrees,
+    check_nonnegative_int,
+    check_records,
+)
+from ..local_models import EXCITATION_TOL, half_slow_bins, window_excitation
+from ..solvers import solve_local_least_squares
+from ..windows import LocalModelLayout, local_regressor
+from ._base import _BaseFRFEstimator
+from .local import LPMBeyondNyquist, LRMBeyondNyquist, _check_sample_time
+
+__all__ = [
+    "CRITERIA",
+    "LocalCriterion",
+    "local_model_criterion",
+    "LRMBeyondNyquistCV",
+    "LPMBeyondNyquistCV",
+]
+
+#: Allowed values of ``criterion``.
+CRITERIA = ("aicc", "gcv", "press")
+
+#: Residual degrees of freedom each criterion needs (AICc divides by L - p - 1).
+_MIN_DOF = {"aicc": 2, "gcv": 1, "press": 1}
+
+#: Default bound on the bytes of one chunk's regressor.
+_CHUNK_BYTES = 2**25
+
+
+@dataclass
+class LocalCriterion:
+    """Selection criterion of one candidate setting (lower is better).
+
+    Attributes
+    ----------
+    value : float
+        The criterion; ``inf`` if no window is well posed.
+    per_bin : ndarray of shape (M//2+1,)
+        Per window: for ``"press"`` the squared centre LOO error summed over
+        experiments, for ``"gcv"`` and ``"aicc"`` the residual variance per
+        equation; both divided by ``M`` (time-domain units, ``y_l^2``). NaN
+        where not well posed.
+    n_invalid : int
+        Windows (slow bins ``0..M//2``) whose local problem is not well posed.
+    """
+
+    value: float
+    per_bin: np.ndarray
+    n_invalid: int
+
+
+def local_model_criterion(
+    U: np.ndarray,
+    Y: np.ndarray,
+    layout: LocalModelLayout,
+    *,
+    criterion: str = "aicc",
+    chunk_size: int | None = None,
+) -> LocalCriterion:
+    """AICc, GCV or leave-one-out (PRESS) criterion of a local-model setting.
+
+    Parameters
+    ----------
+    U : ndarray of shape (P, N), complex
+        Unnormalised DFT of the fast inputs.
+    Y : ndarray of shape (P, M), complex
+        Unnormalised DFT of the slow outputs.
+    layout : LocalModelLayout
+        The candidate (window, degrees, ``P``). Needs ``layout.dof >= 1``
+        (``>= 2`` for AICc).
+    criterion : {"aicc", "gcv", "press"}, default="aicc"
+        See the module notes. With ``s2`` the weighted mean over windows of the
+        residual variance per equation (``rss / L``, divided by ``M``):
+        ``"aicc"`` is ``log(s2) + (L + p) / (L - p - 1)``, ``"gcv"`` is
+        ``s2 / (1 - p/L)^2``; ``"press"`` is the weighted mean of the squared
+        centre LOO errors (divided by ``P M``), i.e. the mean squared LOO
+        output error per time sample by Parseval.
+    chunk_size : int, optional
+        Windows solved at once (bounds memory).
+
+    Returns
+    -------
+    LocalCriterion
+
+    Notes
+    -----
+    With periodic windows and real records the window at ``M-k`` is the
+    conjugate mirror of the one at ``k``, so only ``k = 0..M//2`` are solved
+    and the mirrors are counted through weights (2, or 1 for ``k = 0`` and
+    ``k = M/2``): the means are over all ``M`` windows.
+    """
+    if criterion not in CRITERIA:
+        raise ValueError(
+            f"`criterion` must be one of {CRITERIA}. Got {criterion!r} instead."
+        )
+    if layout.dof < _MIN_DOF[criterion]:
+        raise ValueError(
+            f"The {criterion!r} criterion needs at least {_MIN_DOF[criterion]} "
+            f"residual degree(s) of freedom; this layout has {layout.n_equations} "
+            f"equations and {layout.n_params} parameters. Increase half_window or "
+            "lower the degrees."
+        )
+    per_bin, well_posed, _ = _local_criteria(U, Y, layout, chunk_size=chunk_size)
+    values = per_bin["press" if criterion == "press" else "residual"]
+    return LocalCriterion(
+        value=_combine(values, well_posed, layout, criterion, Y.shape[1]),
+        per_bin=values,
+        n_invalid=int(np.count_nonzero(~well_posed)),
+    )
+
+
+def _combine(per_bin, well_posed, layout, criterion, n_slow) -> float:
+    """Weighted mean over the well-posed windows, then the criterion's penalty."""
+    weights = np.full(per_bin.size, 2.0)
+    weights[0] = 1.0
+    if n_slow % 2 == 0:
+        weights[-1] = 1.0  # k = M/2 is its own mirror
+    w = weights[well_posed]
+    if not w.size:
+        return np.inf
+    mean = float(np.sum(w * per_bin[well_posed]) / w.sum())
+    L, p = layout.n_equations, layout.n_params
+    if criterion == "gcv":
+        return mean / (1.0 - p / L) ** 2
+    if criterion == "aicc":
+        return float(np.log(mean) + (L + p) / (L - p - 1))
+    return mean
+
+
+def _local_criteria(U, Y, layout, *, chunk_size=None):
+    """Per-window ingredients of the criteria, the well-posed mask, band FRFs.
+
+    Returns
+    -------
+    per_bin : dict of ndarray of shape (M//2+1,)
+        ``"press"``: squared centre LOO error summed over experiments over
+        ``P M``; ``"residual"``: ``rss / (L M)``. NaN where not well posed.
+    well_posed : ndarray of shape (M//2+1,), bool
+    system : ndarray of shape (M//2+1, F), complex
+        ``G(k+fM)`` of each window (as :func:`fit_local_models`).
+    """
+    P, M = Y.shape
+    slow_bins = half_slow_bins(M)
+    if chunk_size is None:
+        per_window = 16 * layout.n_equations * (layout.n_params + 2)
+        chunk_size = max(1, _CHUNK_BYTES // per_window)
+    centre_rows = np.arange(P) * layout.window + layout.half_window
+    per_bin = {name: np.empty(slow_bins.size) for name in ("press", "residual")}
+    well_posed = np.empty(slow_bins.size, dtype=bool)
+    system = np.empty((slow_bins.size, layout.F), dtype=complex)
+    for start in range(0, slow_bins.size, chunk_size):
+        bins = slow_bins[start : start + chunk_size]
+        chunk = slice(start, start + bins.size)
+        A, b = local_regressor(U, Y, bins, layout)
+        sol = solve_local_least_squares(A, b, return_leverage=True)
+        well_posed[chunk] = sol.well_posed
+        system[chunk] = layout.F * sol.theta[:, : layout.F]
+        theta = np.where(sol.well_posed[:, None], sol.theta, 0.0)
+        centre = b[:, centre_rows] - np.einsum(
+            "bij,bj->bi", A[:, centre_rows], theta
+        )
+        with np.errstate(divide="ignore", invalid="ignore"):
+            loo = np.abs(centre / (1.0 - sol.leverage[:, centre_rows])) ** 2
+        per_bin["press"][chunk] = loo.sum(axis=1) / (P * M)
+        per_bin["residual"][chunk] = sol.rss / (layout.n_equations * M)
+    excited = (window_excitation(U, slow_bins, layout) > EXCITATION_TOL).all(axis=1)
+    well_posed &= excited
+    for values in per_bin.values():
+        well_posed &= np.isfinite(values)
+    for values in per_bin.values():
+        values[~well_posed] = np.nan
+    system[~well_posed] = np.nan
+    return per_bin, well_posed, system
+
+
+class _LocalModelCV(_BaseFRFEstimator):
+    """Grid of candidate settings scored by a closed-form criterion, then refit."""
+
+    #: Estimator refitted with the best candidate (its parameters are the
+    #: candidate dicts' keys).
+    _base_class = LRMBeyondNyquist
+
+    def _grid(self) -> dict:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _degrees_of(self, params: dict) -> dict:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _candidates(self) -> list[dict]:
+        grid = self._grid()
+        axes = []
+        for name, values in grid.items():
+            if values is None and name == "transient_degree":
+                continue  # tied to the system degree by the subclass
+            if isinstance(values, numbers.Integral) and not isinstance(values, bool):
+                values = [values]
+            try:
+                values = list(values)
+            except TypeError as exc:
+                raise TypeError(
+                    f"`{name}s` must be a sequence of integers. Got {values!r}."
+                ) from exc
+            if not values:
+                raise ValueError(
+                    f"The candidate grid is empty: `{name}s` has no values. Pass "
+                    f"at least one, e.g. {name}s=(18,)."
+                )
+            values = [check_nonnegative_int(v, f"{name}s[{i}]") for i, v in
+                      enumerate(values)]
+            axes.append([(name, v) for v in dict.fromkeys(values)])
+        return [dict(combo) for combo in itertools.product(*axes)]
+
+    def fit(self, u_h, y_l, F, *, sample_time: float = 1.0):
+        """Score every candidate on the data, then refit the best one.
+
+        Parameters
+        ----------
+        u_h : array-like of shape (N,) or (P, N), or list of P records
+            Fast-rate input(s), real.
+        y_l : array-like of shape (M,) or (P, M), or list of P records
+            Slow-rate output(s), real.
+        F : int
+            Downsampling factor, ``N = F M``.
+        sample_time : float, default=1.0
+            Fast sample time in seconds.
+
+        Returns
+        -------
+        self
+        """
+        if self.criterion not in CRITERIA:
+            raise ValueError(
+                f"`criterion` must be one of {CRITERIA}. Got {self.criterion!r} "
+                "instead."
+            )
+        u, y, F = check_records(u_h, y_l, F)
+        sample_time = _check_sample_time(sample_time)
+        candidates = self._candidates()
+        P, M = y.shape
+        layouts, reasons = [], []
+        for params in candidates:
+            try:
+                degrees = check_local_degrees(
+                    **self._degrees_of(params), F=F, n_slow=M, n_experiments=P
+                )
+            except ValueError as exc:
+                layouts.append(None)
+                reasons.append(str(exc))
+                continue
+            layout = LocalModelLayout(F=F, n_experiments=P, **degrees)
+            enough = layout.dof >= _MIN_DOF[self.criterion]
+            layouts.append(layout if enough else None)
+            reasons.append(
+                "" if enough else f"{layout.dof} residual dof, the "
+                f"{self.criterion!r} criterion needs at least "
+                f"{_MIN_DOF[self.criterion]}"
+            )
+        if all(layout is None for layout in layouts):
+            raise ValueError(
+                f"No candidate of the grid is identifiable for N={u.shape[1]}, "
+                f"F={F}, P={P} ({len(candidates)} candidates; e.g. "
+                f"{candidates[0]}: {reasons[0]}). Use smaller degrees or larger "
+                "half_windows (each needs P*(2n+1) > (R_g+1)F + P(R_t+1) + R_e "
+                "and 2n+1 <= M)."
+            )
+        U = np.fft.fft(u, axis=1)
+        Y = np.fft.fft(y, axis=1)
+        todo = [i for i, layout in enumerate(layouts) if layout is not None]
+        results = Parallel(n_jobs=self.n_jobs)(
+            delayed(local_model_criterion)(U, Y, layouts[i], criterion=self.criterion)
+            for i in todo
+        )
+        value = np.full(len(candidates), np.inf)
+        n_invalid = np.full(len(candidates), half_slow_bins(M).size)
+        for i, res in zip(todo, results, strict=True):
+            value[i] = res.value
+            n_invalid[i] = res.n_invalid
+        if not np.isfinite(value).any():
+            raise ValueError(
+                f"No candidate of the grid is identifiable on these data: every "
+                f"local problem of all {len(candidates)} candidates is "
+                "rank-deficient. Use an input that excites every aliased band, "
+                "e.g. a random-phase multisine (lrmfrf.signals.multisine)."
+            )
+        # Prefer candidates that identify the most bins, then the lowest error.
+        order = np.lexsort((value, n_invalid))
+        rank = np.empty(len(candidates), dtype=int)
+        rank[order] = np.arange(1, len(candidates) + 1)
+        best = int(order[0])
+        self.cv_results_ = self._results_dict(candidates, layouts, value, n_invalid,
+                                              rank)
+        self.best_index_ = best
+        self.best_params_ = dict(candidates[best])
+        self.best_score_ = float(-value[best])
+        estimator = clone(self._base_class(**candidates[best]))
+        estimator.fit(u, y, F, sample_time=sample_time)
+        self.best_estimator_ = estimator
+        for name, attr in vars(estimator).items():
+            if name.endswith("_") and not name.startswith("_"):
+                setattr(self, name, attr)
+        return self
+
+    def _results_dict(self, candidates, layouts, value, n_invalid, rank) -> dict:
+        results: dict = {"params": [dict(c) for c in candidates]}
+        for name in candidates[0]:
+            results[f"param_{name}"] = np.array([c[name] for c in candidates])
+        results["n_params"] = np.array(
+            [-1 if lay is None else lay.n_params for lay in layouts]
+        )
+        results["dof"] = np.array([-1 if lay is None else lay.dof for lay in layouts])
+        results["identifiable"] = np.isfinite(value)
+        results["n_invalid_bins"] = n_invalid
+        results["criterion"] = value
+        results["mean_test_score"] = -value
+        results["rank_test_score"] = rank
+        return results
+
+    def _fast_frf(self, n_samples: int) -> np.ndarray:
+        return self.best_estimator_._fast_frf(n_samples)
+
+
+class LRMBeyondNyquistCV(_LocalModelCV):
+    """LRM beyond Nyquist with the window and degrees chosen from the data.
+
+    Every combination of the candidate values is scored on the data by a
+    closed-form criterion of its local problems (AICc by default; see the
+    module notes), the best one is refitted with :class:`LRMBeyondNyquist`, and its
+    fitted attributes are copied, so this estimator is used like an
+    ``LRMBeyondNyquist`` (``frf_``, ``frf_std_``, ``predict``, ``score``,
+    ``to_frd``).
+
+    Parameters
+    ----------
+    half_windows : sequence of int, default=(12, 18, 24, 36)
+        Candidate ``n`` (windows of ``2n+1`` slow bins). Candidates that do not
+        fit the record or have too few equations are skipped (reported in
+        ``cv_results_``).
+    num_degrees : sequence of int, default=(2, 4, 5, 6)
+        Candidate ``R_g``.
+    transient_degrees : sequence of int or None, default=None
+        Candidate ``R_t``; ``None`` ties ``R_t = R_g`` (the paper's settings
+        and METHOD.md's all have ``R_t = R_g``), which keeps the grid small.
+    den_degrees : sequence of int, default=(2, 4, 7, 8)
+        Candidate ``R_e``. The default grid (64 candidates) contains the
+        paper's Table I setting (18, 4, 4, 7) and METHOD.md's (5, 5, 4).
+    criterion : {"aicc", "gcv", "press"}, default="aicc"
+        See :func:`local_model_criterion` and the module notes.
+    n_jobs : int or None, default=None
+        Candidates scored in parallel with joblib (``None``: the active joblib
+        backend's default, 1 outside a ``parallel_config`` context; ``-1``: all
+        cores). Works with ``joblib.parallel_config(backend="dask")``.
+
+    Attributes
+    ----------
+    best_params_ : dict
+        ``half_window``, ``num_degree``, ``transient_degree``, ``den_degree``.
+    best_score_ : float
+        ``-criterion`` of the best candidate (higher is better).
+    best_index_ : int
+    best_estimator_ : LRMBeyondNyquist
+        Refitted on all data with ``best_params_``.
+    cv_results_ : dict of ndarray
+        ``params`` (list of dict), ``param_<name>``, ``n_params``, ``dof``,
+        ``identifiable``, ``n_invalid_bins``, ``criterion`` (the value of
+        :func:`local_model_criterion`, lower is better, ``inf`` if not
+        identifiable),
+        ``mean_test_score`` (its negative) and ``rank_test_score`` (1 is best:
+        fewest invalid bins, then lowest criterion).
+    frequencies_, frf_, frf_std_, valid_, noise_variance_, transient_, ...
+        Those of ``best_estimator_`` (see :class:`LRMBeyondNyquist`).
+
+    Examples
+    --------
+    >>> from scipy.signal import lfilter
+    >>> from lrmfrf.estimators.selection import LRMBeyondNyquistCV
+    >>> from lrmfrf.signals import multisine
+    >>> u = multisine(1200, rng=0)
+    >>> y = lfilter([0.2, 0.1], [1.0, -0.5], u)[::3]
+    >>> est = LRMBeyondNyquistCV(half_windows=(12, 18), num_degrees=(1, 2),
+    ...                          den_degrees=(1, 2)).fit(u, y, F=3)
+    >>> sorted(est.best_params_)
+    ['den_degree', 'half_window', 'num_degree', 'transient_degree']
+    """
+
+    _base_class = LRMBeyondNyquist
+
+    def __init__(
+        self,
+        *,
+        half_windows=(12, 18, 24, 36),
+        num_degrees=(2, 4, 5, 6),
+        transient_degrees=None,
+        den_degrees=(2, 4, 7, 8),
+        criterion: str = "aicc",
+        n_jobs: int | None = None,
+    ):
+        self.half_windows = half_windows
+        self.num_degrees = num_degrees
+        self.transient_degrees = transient_degrees
+        self.den_degrees = den_degrees
+        self.criterion = criterion
+        self.n_jobs = n_jobs
+
+    def _grid(self) -> dict:
+        return {
+            "half_window": self.half_windows,
+            "num_degree": self.num_degrees,
+            "transient_degree": self.transient_degrees,
+            "den_degree": self.den_degrees,
+        }
+
+    def _candidates(self) -> list[dict]:
+        candidates = super()._candidates()
+        if self.transient_degrees is None:
+            for c in candidates:
+                c["transient_degree"] = c["num_degree"]
+        order = ("half_window", "num_degree", "transient_degree", "den_degree")
+        return [{k: c[k] for k in order} for c in candidates]
+
+    def _degrees_of(self, params: dict) -> dict:
+        return dict(params)
+
+
+class LPMBeyondNyquistCV(_LocalModelCV):
+    """LPM beyond Nyquist with the window and degree chosen from the data.
+
+    The polynomial (``R_e = 0``) counterpart of :class:`LRMBeyondNyquistCV`;
+    the best candidate is refitted with :class:`LPMBeyondNyquist`.
+
+    Parameters
+    ----------
+    half_windows : sequence of int, default=(6, 9, 12, 18, 24)
+        Candidate ``n``.
+    degrees : sequence of int, default=(1, 2, 3, 4)
+        Candidate polynomial degrees of the system.
+    transient_degrees : sequence of int or None, default=None
+        Candidate transient degrees; ``None`` uses the system degree.
+    criterion : {"aicc", "gcv", "press"}, default="aicc"
+    n_jobs : int or None, default=None
+
+    Attributes
+    ----------
+    best_params_ : dict
+        ``half_window``, ``degree``, ``transient_degree``.
+    best_score_, best_index_, best_estimator_, cv_results_
+        As in :class:`LRMBeyondNyquistCV`.
+    frequencies_, frf_, frf_std_, valid_, ...
+        Those of ``best_estimator_`` (see :class:`LPMBeyondNyquist`).
+    """
+
+    _base_class = LPMBeyondNyquist
+
+    def __init__(
+        self,
+        *,
+        half_windows=(6, 9, 12, 18, 24),
+        degrees=(1, 2, 3, 4),
+        transient_degrees=None,
+        criterion: str = "aicc",
+        n_jobs: int | None = None,
+    ):
+        self.half_windows = half_windows
+        self.degrees = degrees
+        self.transient_degrees = transient_degrees
+        self.criterion = criterion
+        self.n_jobs = n_jobs
+
+    def _grid(self) -> dict:
+        return {
+            "half_window": self.half_windows,
+            "degree": self.degrees,
+            "transient_degree": self.transient_degrees,
+        }
+
+    def _candidates(self) -> list[dict]:
+        candidates = super()._candidates()
+        if self.transient_degrees is None:
+            for c in candidates:
+                c["transient_degree"] = c["degree"]
+        return candidates
+
+    def _degrees_of(self, params: dict) -> dict:
+        return {
+            "half_window": params["half_window"],
+            "num_degree": params["degree"],
+            "transient_degree": params["transient_degree"],
+            "den_degree": 0,
+        }
