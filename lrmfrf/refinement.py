@@ -55,6 +55,7 @@ import numpy as np
 from sklearn.exceptions import ConvergenceWarning
 
 from .local_models import CHUNK_BYTES, LocalModelFit
+from .progress import progress
 from .solvers import lemma2_variance, noise_variance, solve_local_least_squares
 from .windows import LocalModelLayout, local_regressor, window_offsets
 
@@ -329,7 +330,7 @@ FAR_FROM_CONVERGENCE = 1e-3
 
 def _refine(
     U, Y, layout, local_fit, *, sk_iterations, lm_iterations, tol, guard, jump,
-    keep_best, chunk_size,
+    keep_best, chunk_size, verbose=False,
 ) -> RefinementResult:
     """Kernel of :func:`refine_local_models` (no warnings)."""
     F = layout.F
@@ -349,7 +350,8 @@ def _refine(
     guarded = np.zeros(B, dtype=bool)
     converged = np.zeros(B, dtype=bool)
     oe_sk, oe_lm, weighted_sk = [], [], []
-    for start in range(0, B, chunk_size):
+    starts = range(0, B, chunk_size)
+    for start in progress(starts, enabled=verbose, desc="refinement (chunks)"):
         sl = slice(start, start + chunk_size)
         ok = local_fit.well_posed[sl]
         if not ok.any():

@@ -176,6 +176,9 @@ class LRMBeyondNyquist(_LocalModelEstimator):
         A refined iterate whose FRF moves more than ``jump`` closed-form
         standard deviations away from the closed form is rejected likewise.
         ``None`` disables it.
+    verbose : bool, default=False
+        Show a progress bar over the chunks of windows during refinement
+        (long records; needs tqdm).
 
     Attributes
     ----------
@@ -254,6 +257,7 @@ class LRMBeyondNyquist(_LocalModelEstimator):
         tol: float = 1e-6,
         guard: float | None = 0.5,
         jump: float | None = 5.0,
+        verbose: bool = False,
     ):
         self.half_window = half_window
         self.num_degree = num_degree
@@ -264,6 +268,7 @@ class LRMBeyondNyquist(_LocalModelEstimator):
         self.tol = tol
         self.guard = guard
         self.jump = jump
+        self.verbose = verbose
 
     def _local_degrees(self) -> dict:
         return {
@@ -286,6 +291,7 @@ class LRMBeyondNyquist(_LocalModelEstimator):
         result = _refine(
             U, Y, layout, local_fit, sk_iterations=sk, lm_iterations=lm, tol=tol,
             guard=guard, jump=jump, keep_best=True, chunk_size=None,
+            verbose=bool(self.verbose),
         )
         _emit_warnings(result, stacklevel=3)  # -> the caller of fit
         self.cost_history_ = result.cost_history

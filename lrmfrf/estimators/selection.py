@@ -59,6 +59,7 @@ from .._validation import (
     check_records,
 )
 from ..local_models import EXCITATION_TOL, half_slow_bins, window_excitation
+from ..progress import progress
 from ..solvers import solve_local_least_squares
 from ..windows import LocalModelLayout, local_regressor
 from ._base import _BaseFRFEstimator
@@ -323,7 +324,7 @@ class _LocalModelCV(_BaseFRFEstimator):
         todo = [i for i, layout in enumerate(layouts) if layout is not None]
         results = Parallel(n_jobs=self.n_jobs)(
             delayed(local_model_criterion)(U, Y, layouts[i], criterion=self.criterion)
-            for i in todo
+            for i in progress(todo, enabled=self.verbose, desc="candidates")
         )
         value = np.full(len(candidates), np.inf)
         n_invalid = np.full(len(candidates), half_slow_bins(M).size)
@@ -404,6 +405,8 @@ class LRMBeyondNyquistCV(_LocalModelCV):
         Candidates scored in parallel with joblib (``None``: the active joblib
         backend's default, 1 outside a ``parallel_config`` context; ``-1``: all
         cores). Works with ``joblib.parallel_config(backend="dask")``.
+    verbose : bool, default=False
+        Show a progress bar over the candidates (needs tqdm).
 
     Attributes
     ----------
@@ -448,6 +451,7 @@ class LRMBeyondNyquistCV(_LocalModelCV):
         den_degrees=(2, 4, 7, 8),
         criterion: str = "aicc",
         n_jobs: int | None = None,
+        verbose: bool = False,
     ):
         self.half_windows = half_windows
         self.num_degrees = num_degrees
@@ -455,6 +459,7 @@ class LRMBeyondNyquistCV(_LocalModelCV):
         self.den_degrees = den_degrees
         self.criterion = criterion
         self.n_jobs = n_jobs
+        self.verbose = verbose
 
     def _grid(self) -> dict:
         return {
@@ -513,12 +518,14 @@ class LPMBeyondNyquistCV(_LocalModelCV):
         transient_degrees=None,
         criterion: str = "aicc",
         n_jobs: int | None = None,
+        verbose: bool = False,
     ):
         self.half_windows = half_windows
         self.degrees = degrees
         self.transient_degrees = transient_degrees
         self.criterion = criterion
         self.n_jobs = n_jobs
+        self.verbose = verbose
 
     def _grid(self) -> dict:
         return {
