@@ -31,6 +31,7 @@ import numpy as np
 from lrmfrf import multisine
 from lrmfrf.local_models import fit_local_models, one_sided_fast_grid
 from lrmfrf.plants import wafer_stage
+from lrmfrf.progress import progress
 from lrmfrf.refinement import refine_local_models
 from lrmfrf.simulate import simulate, true_frf
 from lrmfrf.windows import LocalModelLayout
@@ -98,7 +99,7 @@ def accuracy(runs, snr_db, unguarded, seed):
         keep[0] = False  # DC: double integrator in the loop
         rng = np.random.default_rng(seed)
         closed_med, per_method = [], {name: [] for name in methods}
-        for _ in range(runs):
+        for _ in progress(range(runs), enabled=None, desc=system_name):
             med, out = one_realisation(system, G, keep, rng, snr_db, methods)
             closed_med.append(med)
             for name in methods:

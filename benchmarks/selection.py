@@ -46,6 +46,7 @@ from lrmfrf.estimators.selection import (
 )
 from lrmfrf.local_models import one_sided_fast_grid
 from lrmfrf.plants import wafer_stage
+from lrmfrf.progress import progress
 from lrmfrf.signals import multisine
 from lrmfrf.simulate import simulate, true_frf
 from lrmfrf.windows import LocalModelLayout
@@ -99,7 +100,7 @@ def run(realisations: int, n_jobs: int, seed: int = 2024):
         t0 = time.perf_counter()
         out = Parallel(n_jobs=n_jobs)(
             delayed(one_realisation)(system, G, seed + r, candidates)
-            for r in range(realisations)
+            for r in progress(range(realisations), enabled=None, desc=name)
         )
         elapsed = time.perf_counter() - t0
         errors = np.array([o[0] for o in out])  # (R, C)
