@@ -27,6 +27,8 @@ Run::
     python benchmarks/speed.py            # N up to 1.2e6, about 2-4 minutes
     python benchmarks/speed.py --huge     # also N = 1.2e7 (LRM, LPM, SA)
     python benchmarks/speed.py --quick    # N up to 1.2e5 (smoke test)
+    python benchmarks/speed.py --backend both  # numpy vs numba, loop, SA
+    python benchmarks/speed.py --backend numpy # LRM without the compiled kernel
 
 Prints a markdown table and writes ``benchmarks/results/speed.csv``.
 """
@@ -124,7 +126,23 @@ def run_case(method: str, n_samples: int, F: int) -> dict:
     extra = {}
     t0 = time.perf_counter()
     c0 = time.process_time()
-    if method == "LRM":
+    if method in ("LRM", "LRM numpy", "LRM numba"):
+        if method != "LRM":
+            backend = method.split()[1]
+            os.environ["LRMFRF_DISABLE_NUMBA"] = "1" if backend == "numpy" else ""
+            if backend == "numba":  # JIT (or cache load) outside the timing
+                from lrmfrf.solvers import solve_local_normal_equations
+                from lrmfrf.windows import LocalModelLayout
+
+                layout = LocalModelLayout(F, n, 4, 4, 7)
+                j0 = time.perf_counter()
+                solve_local_normal_equations(
+                    np.fft.fft(u)[None], np.fft.fft(y)[None], np.arange(2), layout,
+                    backend="numba",
+                )
+                out["first_call_s"] = time.perf_counter() - j0
+            t0 = time.perf_counter()
+            c0 = time.process_time()
         est = LRMBeyondNyquist(half_window=n).fit(u, y, F)
         extra["check"] = est
     elif method == "LRM SK10":
@@ -208,6 +226,10 @@ def _compare_with_qr(u, y, F, n, est) -> float:
 
 
 def cases(args) -> list[tuple[str, int, int]]:
+    if args.backend == "both":
+        sizes = [120_000] + ([] if args.quick else [1_200_000])
+        methods = ("LRM numpy", "LRM numba", "LRM loop", "SA")
+        return [(m, N, 3) for N in sizes for m in methods]
     sizes = [1200, 12_000, 120_000] + ([] if args.quick else [1_200_000])
     out = []
     for N in sizes:
@@ -222,9 +244,11 @@ def cases(args) -> list[tuple[str, int, int]]:
     return out
 
 
-def run_child(method: str, N: int, F: int) -> dict:
+def run_child(method: str, N: int, F: int, backend: str = "auto") -> dict:
     cmd = [sys.executable, __file__, "--child", json.dumps([method, N, F])]
     env = dict(os.environ, PYTHONWARNINGS="ignore")
+    if backend == "numpy":
+        env["LRMFRF_DISABLE_NUMBA"] = "1"
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, check=False)
     if proc.returncode != 0:
         return {"method": method, "N": N, "F": F, "error": proc.stderr.strip()[-300:]}
@@ -234,8 +258,8 @@ def run_child(method: str, N: int, F: int) -> dict:
 def markdown(rows: list[dict]) -> str:
     head = (
         "| method | N | F | n | fit wall (s) | fit CPU (s) | slow bins/s (CPU) | "
-        "peak extra MB | max rel diff vs QR | note |\n"
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"
+        "peak extra MB | max rel diff vs QR | JIT first call (s) | note |\n"
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"
     )
     lines = [head]
     for r in rows:
@@ -247,9 +271,10 @@ def markdown(rows: list[dict]) -> str:
         rate = f"{r['slow_bins_per_s']:.3g}" if "slow_bins_per_s" in r else ""
         mem = f"{r['peak_extra_mb']:.0f}" if "peak_extra_mb" in r else ""
         diff = f"{r['max_rel_diff_vs_qr']:.1e}" if "max_rel_diff_vs_qr" in r else ""
+        jit = f"{r['first_call_s']:.2f}" if "first_call_s" in r else ""
         lines.append(
             f"| {r['method']} | {r['N']:.3g} | {r['F']} | {r.get('n', '')} | {fit} | "
-            f"{cpu} | {rate} | {mem} | {diff} | {note} |"
+            f"{cpu} | {rate} | {mem} | {diff} | {jit} | {note} |"
         )
     return "\n".join(lines)
 
@@ -263,10 +288,19 @@ def summary(rows: list[dict]) -> str:
                 return r[key]
         return float("nan")
 
-    big = 1_200_000 if get("LRM", 1_200_000, "fit_s") > 0 else 120_000
+    names = [r["method"] for r in rows]
     lines = []
-    for key, label in (("fit_s", "wall"), ("cpu_s", "CPU")):
-        lrm = get("LRM", big, key)
+    for name in ("LRM", "LRM numpy", "LRM numba"):
+        if name in names:
+            lines += _targets(get, name)
+    return "\n".join(lines)
+
+
+def _targets(get, name: str) -> list[str]:
+    big = 1_200_000 if get(name, 1_200_000, "fit_s") > 0 else 120_000
+    lines = []
+    for key, label in (("fit_s", f"{name}, wall"), ("cpu_s", f"{name}, CPU")):
+        lrm = get(name, big, key)
         lines += [
             f"- [{label}] LRM fit at N = {big:.3g}: {lrm:.2f} s "
             "(target <= 5 s, aim 2 s)",
@@ -279,9 +313,9 @@ def summary(rows: list[dict]) -> str:
         if big == 1_200_000:
             lines.append(
                 f"- [{label}] time(1.2e6) / time(1.2e5): "
-                f"{lrm / get('LRM', 120_000, key):.1f} (target <= 12)"
+                f"{lrm / get(name, 120_000, key):.1f} (target <= 12)"
             )
-    return "\n".join(lines)
+    return lines
 
 
 def main(argv=None) -> None:
@@ -290,6 +324,12 @@ def main(argv=None) -> None:
     parser.add_argument("--huge", action="store_true", help="also N = 1.2e7")
     parser.add_argument("--qr-all", action="store_true", help="batched QR at every N")
     parser.add_argument("--sk-all", action="store_true", help="SK10 at every N")
+    parser.add_argument(
+        "--backend", choices=("auto", "numpy", "both"), default="auto",
+        help="normal-equation solver of the LRM cases ('auto': numba if "
+        "installed); 'both': numpy and numba side by side with the per-bin loop "
+        "and SA at N = 1.2e5 and 1.2e6 (writes speed_backends.csv)",
+    )
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
@@ -298,15 +338,17 @@ def main(argv=None) -> None:
         return
     rows = []
     for method, N, F in cases(args):
-        row = run_child(method, N, F)
+        row = run_child(method, N, F, args.backend)
         rows.append(row)
         status = row.get("fit_s", row.get("skipped", row.get("error", "")))
         print(f"{method:10s} N={N:<9d} F={F:<3d} {status}", file=sys.stderr)
     RESULTS.mkdir(parents=True, exist_ok=True)
     fields = ["method", "N", "F", "n", "fit_s", "cpu_s", "slow_bins_per_s",
               "peak_extra_mb",
-              "max_rel_diff_vs_qr", "extrapolated", "skipped", "error", "data"]
-    with open(RESULTS / "speed.csv", "w", newline="") as fh:
+              "max_rel_diff_vs_qr", "first_call_s", "extrapolated", "skipped",
+              "error", "data"]
+    name = "speed_backends.csv" if args.backend == "both" else "speed.csv"
+    with open(RESULTS / name, "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
         writer.writeheader()
         writer.writerows(rows)

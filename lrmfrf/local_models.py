@@ -17,6 +17,7 @@ import numpy as np
 from .solvers import (
     lemma2_variance,
     noise_variance,
+    resolve_backend,
     solve_local_least_squares,
     solve_local_normal_equations,
 )
@@ -114,6 +115,7 @@ def fit_local_models(
     return_leverage: bool = False,
     solver: str = "auto",
     refine_steps: int = 1,
+    backend: str = "auto",
 ) -> LocalModelFit:
     """Closed-form local rational models beyond the Nyquist frequency.
 
@@ -142,6 +144,11 @@ def fit_local_models(
         ``"auto"``: ``"normal"``, or ``"qr"`` when ``return_leverage``.
     refine_steps : int, default=1
         Iterative-refinement steps of the ``"normal"`` solver.
+    backend : {"auto", "numpy", "numba"}, default="auto"
+        Implementation of the ``"normal"`` solver (see
+        :func:`lrmfrf.solvers.solve_local_normal_equations`): ``"auto"`` uses
+        the compiled kernel when numba is installed and
+        ``LRMFRF_DISABLE_NUMBA`` is not set. Ignored by ``"qr"``.
 
     Returns
     -------
@@ -153,8 +160,13 @@ def fit_local_models(
         slow_bins = half_slow_bins(M)
     slow_bins = np.asarray(slow_bins, dtype=int)
     solver = _check_solver(solver, return_leverage)
+    backend = resolve_backend(backend)
     if chunk_size is None:
-        chunk_size = default_chunk_size(layout, solver)
+        # the compiled kernel keeps no batched temporaries; its chunk is bounded
+        # by the QR fallback (every window of a chunk may need it)
+        chunk_size = default_chunk_size(
+            layout, "qr" if backend == "numba" else solver
+        )
     # Identifiability of G is decided by the input and transient columns.
     kwargs = {"rank_columns": layout.n_system + layout.n_transient}
     if rank_tol is not None:
@@ -167,7 +179,8 @@ def fit_local_models(
             if solver == "normal":
                 parts.append(
                     solve_local_normal_equations(
-                        U, Y, bins, layout, refine_steps=refine_steps, **kwargs
+                        U, Y, bins, layout, refine_steps=refine_steps,
+                        backend=backend, **kwargs
                     )
                 )
             else:

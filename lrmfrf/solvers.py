@@ -6,10 +6,13 @@ All functions work on a batch of ``B`` independent local problems at once
 
 from __future__ import annotations
 
+import functools
+import os
 from dataclasses import dataclass
 
 import numpy as np
 
+from . import _compiled
 from .windows import LocalModelLayout, StructuredWindows, local_regressor
 
 __all__ = [
@@ -18,6 +21,7 @@ __all__ = [
     "solve_local_normal_equations",
     "noise_variance",
     "lemma2_variance",
+    "resolve_backend",
 ]
 
 #: Default relative threshold on the diagonal of R (equilibrated QR) below
@@ -34,6 +38,9 @@ CHOLESKY_FALLBACK_TOL = 1e-6
 #: solver: the correction estimates the error of the normal equations, which
 #: is the square of the error left after it while refinement converges.
 REFINEMENT_TOL = 1e-5
+
+#: Implementations of :func:`solve_local_normal_equations`.
+BACKENDS = ("auto", "numpy", "numba")
 
 
 @dataclass
@@ -181,6 +188,7 @@ def solve_local_normal_equations(
     refine_steps: int = 1,
     fallback_tol: float = CHOLESKY_FALLBACK_TOL,
     rank_columns: int | None = None,
+    backend: str = "auto",
 ) -> LocalSolution:
     """Fast closed form eq. (linearSolution) by structured normal equations.
 
@@ -214,6 +222,14 @@ def solve_local_normal_equations(
     fallback_tol : float, default=1e-6
     rank_columns : int, optional
         Passed to the QR fallback (see :func:`solve_local_least_squares`).
+    backend : {"auto", "numpy", "numba"}, default="auto"
+        ``"numba"``: one compiled kernel per window, in parallel over windows
+        (Gram matrix, Cholesky, solves, refinement and variance without
+        batched temporaries; needs the ``fast`` extra, ``pip install
+        numba``); ``"numpy"``: batched array operations; ``"auto"``:
+        ``"numba"`` when it is importable and the environment variable
+        ``LRMFRF_DISABLE_NUMBA`` is not set to a non-empty value other than
+        ``0``, else ``"numpy"``. Both give the same results up to round-off.
 
     Returns
     -------
@@ -224,8 +240,42 @@ def solve_local_normal_equations(
         other columns (use :func:`solve_local_least_squares` for those);
         ``leverage`` is None.
     """
+    backend = resolve_backend(backend)
     slow_bins = np.asarray(slow_bins, dtype=int)
     windows = StructuredWindows(U, Y, slow_bins, layout)
+    n_centre = layout.F + layout.n_experiments
+    if backend == "numba":
+        weights, col_base, tables = _compiled_tables(layout)
+        theta, rss, centre_var, fast = _compiled.solve_windows(
+            U, Y, slow_bins, weights, col_base, layout.F, n_centre,
+            fallback_tol=fallback_tol, refine_tol=REFINEMENT_TOL,
+            refine_steps=refine_steps, tables=tables,
+        )
+    else:
+        theta, rss, centre_var, fast = _normal_equations_numpy(
+            windows, n_centre, fallback_tol, refine_steps
+        )
+    gram_inv_diag = np.full((slow_bins.size, layout.n_params), np.nan)
+    gram_inv_diag[:, windows.order[-n_centre:]] = centre_var
+    theta = windows.to_layout(theta)
+    well_posed = fast.copy()
+
+    slow = np.flatnonzero(~fast)
+    if slow.size:
+        A, b = local_regressor(U, Y, slow_bins[slow], layout)
+        qr = solve_local_least_squares(
+            A, b, rank_tol=rank_tol, rank_columns=rank_columns
+        )
+        theta[slow] = qr.theta
+        gram_inv_diag[slow] = qr.gram_inv_diag
+        rss[slow] = qr.rss
+        well_posed[slow] = qr.well_posed
+    return LocalSolution(theta, gram_inv_diag, rss, well_posed, None)
+
+
+def _normal_equations_numpy(windows, n_centre, fallback_tol, refine_steps):
+    """Array-operation path: (theta internal, rss, centre_var, fast)."""
+    p = windows.layout.n_params
     gram, rhs, _ = windows.normal_equations()
     # Cholesky is invariant to diagonal scaling (van der Sluis): factor the raw
     # Gram and read the equilibrated pivots as L_jj / sqrt(G_jj).
@@ -238,7 +288,7 @@ def solve_local_normal_equations(
     with np.errstate(invalid="ignore"):
         fast = ~zero_column.any(axis=1) & np.all(pivots > fallback_tol, axis=1)
     if not fast.all():
-        chol[~fast] = np.eye(layout.n_params)
+        chol[~fast] = np.eye(p)
     chol_t = np.ascontiguousarray(chol.transpose(1, 2, 0))
 
     theta = _cholesky_solve(chol_t, rhs)
@@ -260,26 +310,50 @@ def solve_local_normal_equations(
     if refine_steps > 0:
         fast &= change <= REFINEMENT_TOL
 
-    n_centre = layout.F + layout.n_experiments
     tail = chol[:, -n_centre:, -n_centre:]
     tail_inv = np.linalg.inv(tail)
     centre_var = np.sum(tail_inv.real**2 + tail_inv.imag**2, axis=1)
-    gram_inv_diag = np.full((slow_bins.size, layout.n_params), np.nan)
-    gram_inv_diag[:, windows.order[-n_centre:]] = centre_var
-    theta = windows.to_layout(theta)
-    well_posed = fast.copy()
+    return theta, rss, centre_var, fast
 
-    slow = np.flatnonzero(~fast)
-    if slow.size:
-        A, b = local_regressor(U, Y, slow_bins[slow], layout)
-        qr = solve_local_least_squares(
-            A, b, rank_tol=rank_tol, rank_columns=rank_columns
+
+def resolve_backend(backend: str) -> str:
+    """Map ``backend`` of :func:`solve_local_normal_equations` to a path.
+
+    Parameters
+    ----------
+    backend : {"auto", "numpy", "numba"}
+
+    Returns
+    -------
+    {"numpy", "numba"}
+    """
+    if backend not in BACKENDS:
+        raise ValueError(
+            f"`backend` must be one of {BACKENDS}. Got {backend!r} instead. Use "
+            "'auto' unless you are comparing implementations."
         )
-        theta[slow] = qr.theta
-        gram_inv_diag[slow] = qr.gram_inv_diag
-        rss[slow] = qr.rss
-        well_posed[slow] = qr.well_posed
-    return LocalSolution(theta, gram_inv_diag, rss, well_posed, None)
+    disabled = os.environ.get("LRMFRF_DISABLE_NUMBA", "") not in ("", "0")
+    if backend == "numba" and not _compiled.AVAILABLE:
+        raise ImportError(
+            "backend='numba' needs numba, which is not importable. Install it "
+            "(pip install 'lrmfrf[fast]' or pip install numba) or use "
+            "backend='auto' or 'numpy'."
+        )
+    if backend == "auto":
+        return "numba" if _compiled.AVAILABLE and not disabled else "numpy"
+    return backend
+
+
+@functools.lru_cache(maxsize=16)
+def _compiled_tables(layout: LocalModelLayout):
+    """Column weights, bases and moment tables of a layout (data-independent)."""
+    P = layout.n_experiments
+    empty = StructuredWindows(
+        np.zeros((P, layout.F)), np.zeros((P, 1)), np.zeros(0, dtype=int), layout
+    )
+    weights, col_base = empty.column_weights()
+    tables = _compiled.moment_tables(weights, col_base, layout.F, P)
+    return weights, col_base, tables
 
 
 def _batched_cholesky(gram: np.ndarray) -> np.ndarray:

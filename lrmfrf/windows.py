@@ -15,6 +15,7 @@ The regressor is built with the *scaled* offset ``x = r/n`` instead of ``r``
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -248,14 +249,7 @@ class StructuredWindows:
     def __init__(self, U, Y, slow_bins, layout: LocalModelLayout, basis=None):
         self.layout = layout
         self.basis = local_basis(layout) if basis is None else basis
-        P, N = U.shape
-        M = Y.shape[1]
-        F = layout.F
-        r, _ = window_offsets(layout.half_window)
-        centre = slow_bins[:, None] + r  # (B, L)
-        band = M * np.arange(F)[:, None, None]
-        self.u_win = U[:, (centre + band) % N]  # (P, F, B, L)
-        self.y_win = Y[:, centre % M]  # (P, B, L)
+        self._data = (U, Y, slow_bins)
         self.n_windows = slow_bins.size
         self._groups = self._column_groups()
         self.order = np.concatenate([g[2] for g in self._groups])
@@ -266,6 +260,22 @@ class StructuredWindows:
         self._spans = [
             slice(lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)
         ]
+
+    @cached_property
+    def u_win(self) -> np.ndarray:
+        """Inputs on the windows, ``U(k+r+fM)``, shape (P, F, B, 2n+1)."""
+        U, Y, slow_bins = self._data
+        N, M = U.shape[1], Y.shape[1]
+        r, _ = window_offsets(self.layout.half_window)
+        band = M * np.arange(self.layout.F)[:, None, None]
+        return U[:, (slow_bins[:, None] + r + band) % N]
+
+    @cached_property
+    def y_win(self) -> np.ndarray:
+        """Outputs on the windows, ``Y_l(k+r)``, shape (P, B, 2n+1)."""
+        _, Y, slow_bins = self._data
+        r, _ = window_offsets(self.layout.half_window)
+        return Y[:, (slow_bins[:, None] + r) % Y.shape[1]]
 
     def _column_groups(self):
         """(kind, index, layout columns) of each group, centre columns last."""
@@ -433,6 +443,28 @@ class StructuredWindows:
                     weighted += np.conj(base[p]) * res[p]
             out[:, span] = _times_real(weighted, w)
         return out
+
+    def column_weights(self) -> tuple[np.ndarray, np.ndarray]:
+        """Basis polynomial and base sequence of every column, internal order.
+
+        Returns
+        -------
+        weights : ndarray of shape (2n+1, n_params), float
+            ``w(r)`` of each column on the window.
+        col_base : ndarray of shape (n_params,), int
+            The base sequence each column multiplies: ``f`` for the input band
+            ``U(k+r+fM)``, ``F+p`` for the transient constant of experiment
+            ``p``, ``F+P`` for ``-Y_l(k+r)`` (denominator).
+        """
+        lay = self.layout
+        F, P = lay.F, lay.n_experiments
+        code = {"num": lambda i: i, "tra": lambda i: F + i, "den": lambda i: F + P}
+        weights, col_base = [], []
+        for kind, index, _ in self._groups:
+            w = self._weights(kind)
+            weights.append(w)
+            col_base += [code[kind.rstrip("0")](index)] * w.shape[1]
+        return np.concatenate(weights, axis=1), np.array(col_base, dtype=np.int64)
 
     def to_layout(self, theta: np.ndarray) -> np.ndarray:
         """Map internal-basis parameters to monomial coefficients, layout order."""
