@@ -21,6 +21,7 @@ _PUBLIC = {
     "LRMBeyondNyquistCV": "lrmfrf.estimators",
     "LPMBeyondNyquistCV": "lrmfrf.estimators",
     "fit_many": "lrmfrf.parallel",
+    "diagnose": "lrmfrf.discrepancy",
     "IdentifiabilityWarning": "lrmfrf.exceptions",
     "multisine": "lrmfrf.signals",
     "wafer_stage": "lrmfrf.plants",

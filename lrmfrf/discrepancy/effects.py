@@ -1,0 +1,544 @@
+"""The catalogue of model effects the discrepancy workflow can name.
+
+An effect is a small class: it names its parameters, proposes initial guesses
+from the current discrepancy, declares bounds, applies itself to a continuous
+plant model (:class:`~lrmfrf.discrepancy._models.ContinuousPlant`) and
+describes itself in words. The frequency response used in the fit is that of
+the exact zero-order-hold discretisation of the modified model, so the fitted
+response and the returned ``updated_plant`` are the same system.
+
+Add your own effect by subclassing :class:`Effect` and passing an instance in
+``diagnose(..., effects=[*default_effects(), MyEffect()])``.
+
+Parameter conventions (the ``parameters`` dict of a finding):
+
+==============  ===========================  ====================================
+effect          parameters                    model change
+==============  ===========================  ====================================
+gain            gain                          ``P -> gain * P``
+delay           delay (s)                     ``P -> exp(-s delay) P`` (input)
+low_pass        cutoff (Hz)                   ``P -> P / (1 + s / (2 pi cutoff))``
+missing_mode    frequency (Hz), damping       ``P -> P + r / (s^2 + 2 z w s + w^2)``
+mode_shift      frequency (Hz), damping       a model mode moved, numerator kept
+model_error     zero_frequency, zero_damping, ``P -> H P``, ``H`` a unit-DC-gain
+                pole_frequency, pole_damping  second-order filter (unnamed)
+==============  ===========================  ====================================
+
+``missing_mode`` also fits the modal residue ``r`` (a nuisance parameter,
+reported with the finding's evidence, not in ``parameters``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+
+from ._models import ContinuousPlant, Resonance, discrete_response
+
+__all__ = [
+    "Effect",
+    "EffectContext",
+    "Gain",
+    "Delay",
+    "LowPass",
+    "MissingMode",
+    "ModeShift",
+    "ModelError",
+    "default_effects",
+]
+
+TWO_PI = 2.0 * math.pi
+
+
+@dataclass
+class EffectContext:
+    """What an effect may look at to propose initial guesses.
+
+    Attributes
+    ----------
+    plant : ContinuousPlant
+        Current plant model (the effects accepted so far applied).
+    frequencies : ndarray of shape (K,)
+        Frequencies of the compared bins in Hz.
+    sample_time : float
+        Fast sample time in s.
+    plant_ratio : ndarray of shape (K,), complex
+        Measured over modelled plant response ``P_meas / P_model``.
+    plant_weight : ndarray of shape (K,)
+        Inverse variance of ``plant_ratio`` (0 where unusable).
+    discrepancy : ndarray of shape (K,)
+        Smoothed whitened squared residual (the discrepancy spectrum).
+    resonances : list of Resonance
+        Lightly damped modes of ``plant``.
+    sensitivity : ndarray of shape (K,), complex
+        ``dG/dP`` of the measured system at the model (1 without controller).
+    residual : ndarray of shape (K,), complex
+        ``G_meas - G_model``.
+    std : ndarray of shape (K,)
+        Calibrated standard deviation of ``G_meas``.
+    """
+
+    plant: ContinuousPlant
+    frequencies: np.ndarray
+    sample_time: float
+    plant_ratio: np.ndarray
+    plant_weight: np.ndarray
+    discrepancy: np.ndarray
+    resonances: list = field(default_factory=list)
+    sensitivity: np.ndarray | None = None
+    residual: np.ndarray | None = None
+    std: np.ndarray | None = None
+
+    @property
+    def nyquist(self) -> float:
+        """Fast Nyquist frequency in Hz."""
+        return 0.5 / self.sample_time
+
+
+class Effect:
+    """Base class of a nameable model effect.
+
+    Subclasses set the class attributes and implement :meth:`apply`,
+    :meth:`initial_guesses` and :meth:`bounds`.
+
+    Attributes
+    ----------
+    name : str
+        Effect name reported in findings.
+    parameter_names : tuple of str
+        Reported parameters (the keys of ``Finding.parameters``).
+    nuisance_names : tuple of str
+        Further fitted parameters, reported with the evidence only.
+    order : int
+        Application order: modal changes (0, 1) before series effects (2), so a
+        delay or low-pass acts on the whole plant, added modes included.
+    named : bool
+        False for the unnamed model-error fallback.
+    repeatable : bool
+        Whether the effect may be accepted more than once (several missing
+        modes); a second gain or delay is never useful.
+    """
+
+    name: str = "effect"
+    parameter_names: tuple[str, ...] = ()
+    nuisance_names: tuple[str, ...] = ()
+    order: int = 2
+    named: bool = True
+    repeatable: bool = False
+
+    @property
+    def all_names(self) -> tuple[str, ...]:
+        return self.parameter_names + self.nuisance_names
+
+    def expand(self, context: EffectContext) -> list[Effect]:
+        """Concrete candidates for this context (one per model mode for shifts)."""
+        return [self]
+
+    def initial_guesses(self, context: EffectContext) -> list[dict]:
+        """Starting points for the fit, each a dict over :attr:`all_names`."""
+        raise NotImplementedError
+
+    def bounds(self, context: EffectContext) -> dict:
+        """``{name: (lower, upper)}`` for every name in :attr:`all_names`."""
+        raise NotImplementedError
+
+    def apply(self, plant: ContinuousPlant, params: dict) -> ContinuousPlant:
+        """The plant with this effect added."""
+        raise NotImplementedError
+
+    def describe(self, params: dict) -> str:
+        """One line of plain text."""
+        values = ", ".join(f"{k}={v:.4g}" for k, v in params.items())
+        return f"{self.name}({values})"
+
+    def label(self) -> str:
+        """Name of this candidate instance (e.g. which mode is shifted)."""
+        return self.name
+
+    def response(
+        self,
+        plant: ContinuousPlant,
+        params: dict,
+        frequencies: np.ndarray,
+        sample_time: float,
+    ) -> np.ndarray:
+        """ZOH frequency response of the plant with this effect, shape (K,)."""
+        return discrete_response(self.apply(plant, params), frequencies, sample_time)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}()"
+
+
+# ---------------------------------------------------------------------------
+# The catalogue
+# ---------------------------------------------------------------------------
+
+
+class Gain(Effect):
+    """Static gain error: ``P -> gain * P`` (actuator constant, sensor scale)."""
+
+    name = "gain"
+    parameter_names = ("gain",)
+
+    def initial_guesses(self, context):
+        ratio, weight = context.plant_ratio, context.plant_weight
+        guesses = [0.7, 0.9, 1.1, 1.4]
+        if weight.sum() > 0:
+            estimate = float(np.sum(weight * np.abs(ratio)) / np.sum(weight))
+            if np.isfinite(estimate) and 0.1 < estimate < 10:
+                guesses.insert(0, estimate)
+        return [{"gain": g} for g in guesses]
+
+    def bounds(self, context):
+        return {"gain": (0.05, 20.0)}
+
+    def apply(self, plant, params):
+        g = params["gain"]
+        return plant.with_(C=plant.C * g, D=plant.D * g)
+
+    def describe(self, params):
+        return f"gain error: the plant gain is {params['gain']:.4g} times the model's"
+
+
+class Delay(Effect):
+    """Input time delay (fractional samples allowed): ``P -> exp(-s delay) P``."""
+
+    name = "delay"
+    parameter_names = ("delay",)
+
+    def initial_guesses(self, context):
+        T = context.sample_time
+        grid = np.concatenate([np.arange(0.1, 1.0, 0.2), np.arange(1.0, 8.01, 0.5)])
+        return [{"delay": float(d * T)} for d in grid]
+
+    def bounds(self, context):
+        return {"delay": (0.0, 20.0 * context.sample_time)}
+
+    def apply(self, plant, params):
+        return plant.with_(delay=plant.delay + max(params["delay"], 0.0))
+
+    def describe(self, params):
+        return f"missing input delay of {params['delay'] * 1e3:.4g} ms"
+
+
+class LowPass(Effect):
+    """First-order actuator or sensor bandwidth: ``P -> P / (1 + s / w_c)``."""
+
+    name = "low_pass"
+    parameter_names = ("cutoff",)
+
+    def initial_guesses(self, context):
+        nyq = context.nyquist
+        return [{"cutoff": float(c)} for c in nyq * np.geomspace(0.1, 8.0, 9)]
+
+    def bounds(self, context):
+        return {"cutoff": (0.01 * context.nyquist, 100.0 * context.nyquist)}
+
+    def apply(self, plant, params):
+        wc = TWO_PI * params["cutoff"]
+        return series_input(
+            plant, np.array([[-wc]]), np.array([[wc]]), np.array([[1.0]]),
+            np.array([[0.0]]),
+        )
+
+    def describe(self, params):
+        return (
+            f"first-order low-pass (actuator or sensor bandwidth) at "
+            f"{params['cutoff']:.4g} Hz"
+        )
+
+
+class MissingMode(Effect):
+    """A lightly damped mode absent from the model, added in parallel.
+
+    Parameters
+    ----------
+    n_starts : int, default=4
+        Discrepancy-spectrum peaks tried as starting frequencies.
+    max_damping : float, default=0.1
+        Upper bound of the damping ratio (a lightly damped mode).
+    """
+
+    name = "missing_mode"
+    parameter_names = ("frequency", "damping")
+    nuisance_names = ("residue",)
+    order = 1
+    repeatable = True
+
+    def __init__(self, *, n_starts: int = 4, max_damping: float = 0.1):
+        self.n_starts = n_starts
+        self.max_damping = max_damping
+
+    def initial_guesses(self, context):
+        lowest = self.lowest_frequency(context)
+        usable = np.where(context.frequencies >= lowest, context.discrepancy, 0.0)
+        peaks = _spectrum_peaks(usable, self.n_starts)
+        guesses = []
+        for index in peaks:
+            f0 = max(float(context.frequencies[index]), lowest)
+            for zeta in (0.005, 0.015, 0.04):
+                residue = _mode_residue(context, f0, zeta)
+                guesses.append({"frequency": f0, "damping": zeta, "residue": residue})
+        return guesses
+
+    def bounds(self, context):
+        return {
+            "frequency": (self.lowest_frequency(context), 0.999 * context.nyquist),
+            "damping": (1e-4, self.max_damping),
+            "residue": (-np.inf, np.inf),
+        }
+
+    @staticmethod
+    def lowest_frequency(context) -> float:
+        """Ten bins above the lower edge of the compared band.
+
+        A mode below the band acts there like a mass (gain) change; it must
+        show its resonance to be named a mode.
+        """
+        f = np.sort(context.frequencies)
+        spacing = float(np.median(np.diff(f))) if f.size > 1 else float(f[0])
+        return float(f[0] + 10 * spacing)
+
+    def apply(self, plant, params):
+        return add_mode(plant, params["frequency"], params["damping"],
+                        params["residue"], 0.0)
+
+    def describe(self, params):
+        return (
+            f"missing mode at {params['frequency']:.4g} Hz with "
+            f"{100 * params['damping']:.3g} % damping"
+        )
+
+
+class ModeShift(Effect):
+    """A model mode at the wrong frequency or damping (its numerator kept).
+
+    The catalogue entry expands into one candidate per lightly damped mode of
+    the model (:meth:`expand`).
+    """
+
+    name = "mode_shift"
+    parameter_names = ("frequency", "damping")
+    order = 0
+
+    def __init__(self, *, target: Resonance | None = None, max_shift: float = 0.3):
+        self.target = target
+        self.max_shift = max_shift
+
+    def expand(self, context):
+        if self.target is not None:
+            return [self]
+        return [
+            ModeShift(target=mode, max_shift=self.max_shift)
+            for mode in context.resonances
+            if mode.frequency < context.nyquist
+        ]
+
+    def label(self):
+        if self.target is None:
+            return self.name
+        return f"{self.name}[{self.target.frequency:.4g} Hz]"
+
+    def initial_guesses(self, context):
+        f0, z0 = self.target.frequency, self.target.damping
+        starts = [f0 * s for s in (1.0, 0.97, 1.03, 0.93, 1.07, 0.85, 1.15)]
+        # a moved mode leaves a discrepancy peak at its new frequency
+        for index in _spectrum_peaks(context.discrepancy, 6):
+            f = float(context.frequencies[index])
+            if abs(f / f0 - 1) < self.max_shift:
+                starts.append(f)
+        return [{"frequency": f, "damping": z0} for f in starts]
+
+    def bounds(self, context):
+        f0 = self.target.frequency
+        return {
+            "frequency": (f0 * (1 - self.max_shift), f0 * (1 + self.max_shift)),
+            "damping": (1e-4, 0.5),
+        }
+
+    def apply(self, plant, params):
+        rest, b1, b0 = split_mode(plant, self.target.frequency, self.target.damping)
+        return add_mode(rest, params["frequency"], params["damping"], b0, b1)
+
+    def describe(self, params):
+        f0 = self.target.frequency
+        change = 100 * (params["frequency"] / f0 - 1)
+        return (
+            f"model mode at {f0:.4g} Hz is at {params['frequency']:.4g} Hz "
+            f"({change:+.3g} %) with {100 * params['damping']:.3g} % damping "
+            f"(model: {100 * self.target.damping:.3g} %)"
+        )
+
+    def __repr__(self):
+        return f"ModeShift(target={self.target!r})"
+
+
+class ModelError(Effect):
+    """Unnamed low-order model error: a unit-DC-gain second-order filter.
+
+    ``H(s) = (s^2/wz^2 + 2 zz s/wz + 1) / (s^2/wp^2 + 2 zp s/wp + 1)`` in series
+    with the plant. Used when no catalogue effect explains the gap; it says
+    where and how much the model is wrong, not why.
+    """
+
+    name = "model_error"
+    parameter_names = ("zero_frequency", "zero_damping", "pole_frequency",
+                       "pole_damping")
+    named = False
+
+    def initial_guesses(self, context):
+        peaks = _spectrum_peaks(context.discrepancy, 3)
+        guesses = []
+        for index in peaks:
+            f0 = float(context.frequencies[index])
+            for ratio in (0.9, 1.1):
+                guesses.append({"zero_frequency": f0 * ratio, "zero_damping": 0.3,
+                                "pole_frequency": f0, "pole_damping": 0.3})
+        return guesses
+
+    def bounds(self, context):
+        fmin = max(float(context.frequencies.min()), 1e-3)
+        fmax = 10 * context.nyquist
+        return {
+            "zero_frequency": (fmin, fmax), "zero_damping": (1e-3, 2.0),
+            "pole_frequency": (fmin, fmax), "pole_damping": (1e-3, 2.0),
+        }
+
+    def apply(self, plant, params):
+        wz = TWO_PI * params["zero_frequency"]
+        wp = TWO_PI * params["pole_frequency"]
+        zz, zp = params["zero_damping"], params["pole_damping"]
+        dc = wp**2 / wz**2
+        # H = dc * (s^2 + 2 zz wz s + wz^2) / (s^2 + 2 zp wp s + wp^2)
+        Af = np.array([[0.0, wp], [-wp, -2 * zp * wp]])
+        Bf = np.array([[0.0], [1.0]])
+        c1 = dc * (2 * zz * wz - 2 * zp * wp)
+        c0 = dc * (wz**2 - wp**2)
+        Cf = np.array([[c0 / wp, c1]])
+        return series_input(plant, Af, Bf, Cf, np.array([[dc]]))
+
+    def describe(self, params):
+        return (
+            "unexplained model error (no catalogue effect fits): second-order "
+            f"zeros at {params['zero_frequency']:.4g} Hz, poles at "
+            f"{params['pole_frequency']:.4g} Hz"
+        )
+
+
+def default_effects() -> list[Effect]:
+    """The default catalogue: gain, delay, low_pass, missing_mode, mode_shift."""
+    return [Gain(), Delay(), LowPass(), MissingMode(), ModeShift()]
+
+
+# ---------------------------------------------------------------------------
+# Model surgery (private helpers, also used by the hidden-effect generator)
+# ---------------------------------------------------------------------------
+
+
+def series_input(plant: ContinuousPlant, Af, Bf, Cf, Df) -> ContinuousPlant:
+    """``plant`` preceded by the filter ``(Af, Bf, Cf, Df)`` at its input."""
+    n, m = plant.n_states, Af.shape[0]
+    A = np.block([[plant.A, plant.B @ Cf], [np.zeros((m, n)), Af]])
+    B = np.vstack([plant.B @ Df, Bf])
+    C = np.hstack([plant.C, plant.D @ Cf])
+    D = plant.D @ Df
+    return plant.with_(A=A, B=B, C=C, D=D)
+
+
+def add_mode(plant: ContinuousPlant, frequency: float, damping: float,
+             b0: float, b1: float) -> ContinuousPlant:
+    """``plant + (b1 s + b0) / (s^2 + 2 damping w s + w^2)``, ``w = 2 pi f``.
+
+    The mode is realised with states ``[w q, dq/dt]`` (well scaled).
+    """
+    w = TWO_PI * frequency
+    n = plant.n_states
+    A = scipy.linalg.block_diag(plant.A, np.array([[0.0, w], [-w, -2 * damping * w]]))
+    B = np.vstack([plant.B, np.array([[0.0], [1.0]])])
+    C = np.hstack([plant.C, np.array([[b0 / w, b1]])])
+    del n
+    return plant.with_(A=A, B=B, C=C)
+
+
+def split_mode(plant: ContinuousPlant, frequency: float, damping: float):
+    """Separate the pole pair nearest ``(frequency, damping)`` from ``plant``.
+
+    Returns
+    -------
+    rest : ContinuousPlant
+        The plant without the mode.
+    b1, b0 : float
+        The mode's numerator: it is ``(b1 s + b0) / (s^2 + 2 z w s + w^2)``.
+    """
+    w = TWO_PI * frequency
+    target = complex(-damping * w, w * math.sqrt(max(1 - damping**2, 0.0)))
+    poles = np.linalg.eigvals(plant.A)
+    upper = poles[poles.imag > 0]
+    if upper.size == 0:
+        raise ValueError("the model has no complex pole pair to shift.")
+    chosen = upper[np.argmin(np.abs(upper - target))]
+    tol = 1e-6 * abs(chosen)
+
+    def select(re, im):
+        return np.abs(re + 1j * np.abs(im) - chosen) < tol
+
+    T, Z, sdim = scipy.linalg.schur(plant.A, output="real", sort=select)
+    if sdim != 2:
+        raise ValueError(
+            f"could not isolate the mode at {frequency:.4g} Hz (repeated pole)."
+        )
+    A11, A12, A22 = T[:2, :2], T[:2, 2:], T[2:, 2:]
+    X = scipy.linalg.solve_sylvester(A11, -A22, -A12)
+    n = plant.n_states
+    Tm = np.eye(n)
+    Tm[:2, 2:] = X
+    Tinv = np.eye(n)
+    Tinv[:2, 2:] = -X
+    B = Tinv @ Z.T @ plant.B
+    C = plant.C @ Z @ Tm
+    B1, C1 = B[:2], C[:, :2]
+    b1 = float((C1 @ B1)[0, 0])
+    b0 = float((C1 @ (A11 - np.trace(A11) * np.eye(2)) @ B1)[0, 0])
+    rest = plant.with_(A=A22, B=B[2:], C=C[:, 2:])
+    return rest, b1, b0
+
+
+def _spectrum_peaks(spectrum: np.ndarray, count: int) -> list[int]:
+    """Indices of the ``count`` largest local maxima of ``spectrum``."""
+    s = np.asarray(spectrum, dtype=float)
+    if s.size < 3:
+        return [int(np.argmax(s))] if s.size else []
+    interior = (s[1:-1] >= s[:-2]) & (s[1:-1] >= s[2:])
+    candidates = np.flatnonzero(interior) + 1
+    if s[0] >= s[1]:
+        candidates = np.append(candidates, 0)
+    if s[-1] >= s[-2]:
+        candidates = np.append(candidates, s.size - 1)
+    order = candidates[np.argsort(s[candidates])[::-1]]
+    picked: list[int] = []
+    for index in order:
+        if all(abs(index - p) > 3 for p in picked):
+            picked.append(int(index))
+        if len(picked) == count:
+            break
+    return picked
+
+
+def _mode_residue(context: EffectContext, frequency: float, damping: float) -> float:
+    """Weighted least-squares residue of a mode given its frequency and damping."""
+    if context.residual is None or context.std is None:
+        return 0.0
+    unit = ContinuousPlant(np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0)),
+                           np.zeros((1, 1)))
+    shape = discrete_response(add_mode(unit, frequency, damping, 1.0, 0.0),
+                              context.frequencies, context.sample_time)
+    sens = context.sensitivity if context.sensitivity is not None else 1.0
+    a = sens * shape / context.std
+    b = context.residual / context.std
+    denominator = float(np.sum(np.abs(a) ** 2))
+    if denominator == 0 or not np.isfinite(denominator):
+        return 0.0
+    return float(np.real(np.sum(np.conj(a) * b)) / denominator)

@@ -1,0 +1,267 @@
+"""The result of :func:`lrmfrf.diagnose`: findings, gaps, updated model, plot."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["Finding", "DiagnosisReport"]
+
+
+@dataclass
+class Finding:
+    """One effect named (or flagged) by the workflow.
+
+    Attributes
+    ----------
+    effect : str
+        ``"gain"``, ``"delay"``, ``"low_pass"``, ``"missing_mode"``,
+        ``"mode_shift"`` (catalogue names), ``"model_error"`` (unnamed
+        low-order fit) or ``"ambiguous"`` (several effects explain the gap
+        about equally well; nothing was added to the model).
+    parameters : dict
+        The effect's parameters (see :mod:`lrmfrf.discrepancy.effects`); for
+        ``"ambiguous"`` the best candidate's.
+    band : tuple of float
+        ``(low, high)`` in Hz holding 90 % of the improvement in fit.
+    statistic : float
+        Likelihood-ratio statistic ``(J_before - J_after) / c`` of the step
+        that found the effect.
+    p_value : float
+        Its chi-square p-value.
+    confidence_intervals : dict
+        95 % intervals ``{name: (low, high)}`` from the joint refit.
+    description : str
+        Plain-text description.
+    candidates : list of dict
+        The ranked alternatives of the step: ``label``, ``bic``, ``parameters``.
+    nuisance : dict
+        Other fitted values (e.g. the residue of a missing mode).
+    """
+
+    effect: str
+    parameters: dict
+    band: tuple
+    statistic: float
+    p_value: float
+    confidence_intervals: dict = field(default_factory=dict)
+    description: str = ""
+    candidates: list = field(default_factory=list)
+    nuisance: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {
+            "effect": self.effect,
+            "parameters": _plain(self.parameters),
+            "band_hz": _plain(list(self.band)),
+            "statistic": _plain(self.statistic),
+            "p_value": _plain(self.p_value),
+            "confidence_intervals": {
+                k: _plain(list(v)) for k, v in self.confidence_intervals.items()
+            },
+            "description": self.description,
+            "candidates": _plain(self.candidates),
+            "nuisance": _plain(self.nuisance),
+        }
+
+
+@dataclass
+class DiagnosisReport:
+    """What is missing from the model, with the evidence.
+
+    Attributes
+    ----------
+    findings : list of Finding
+        Empty when model and measurement agree within noise.
+    gap_before, gap_after : float
+        Whitened RMS gap ``sqrt(mean_k |G_meas - G_model - b|^2 / (kappa std)^2)``
+        of the original and of the updated model (``b``, ``kappa``: estimator
+        bias and std scale from the calibration). About 1 means agreement
+        within noise.
+    updated_plant : control.StateSpace
+        The plant with the accepted effects, discrete at the fast sample time
+        (delays as shift-register states).
+    plant : control.StateSpace
+        The plant as given (discretised with ZOH if it was continuous).
+    frequencies : ndarray of shape (K,)
+        Compared bins in Hz.
+    measured, std : ndarray of shape (K,)
+        Measured FRF (complex) and its calibrated std ``kappa * std``.
+    model_before, model_after : ndarray of shape (K,), complex
+        Model FRFs of the measured system (closed loop if a controller), as the
+        estimator would see them (bias added).
+    spectrum_before, spectrum_after : ndarray of shape (K,)
+        Discrepancy spectrum (moving mean of the whitened squared residual).
+    threshold_before, threshold_after : float
+        Level each spectrum exceeds by chance with probability ``alpha / 2``.
+    p_value_before, p_value_after : float
+        Global-test p-values.
+    slow_nyquist : float
+        Slow-rate Nyquist frequency in Hz.
+    closed_loop : bool
+        Whether a controller was given.
+    calibration, calibration_after : Calibration
+        Null behaviour of the estimator at the original and the updated model.
+    settings : dict
+        ``alpha``, ``ic_margin``, ``max_effects`` and calibration settings.
+    """
+
+    findings: list
+    gap_before: float
+    gap_after: float
+    updated_plant: object
+    plant: object
+    frequencies: np.ndarray
+    measured: np.ndarray
+    std: np.ndarray
+    model_before: np.ndarray
+    model_after: np.ndarray
+    spectrum_before: np.ndarray
+    spectrum_after: np.ndarray
+    threshold_before: float
+    threshold_after: float
+    p_value_before: float
+    p_value_after: float
+    slow_nyquist: float
+    closed_loop: bool
+    calibration: object = None
+    calibration_after: object = None
+    settings: dict = field(default_factory=dict)
+
+    @property
+    def effects(self) -> list[str]:
+        """Names of the findings, in order."""
+        return [f.effect for f in self.findings]
+
+    def summary(self) -> str:
+        """Plain-text summary: verdict, gaps and one paragraph per finding."""
+        lines = ["Model-vs-measurement diagnosis"]
+        loop = "closed loop P/(1+CP)" if self.closed_loop else "open loop (plant)"
+        lines.append(
+            f"  compared: {loop}, {self.frequencies.size} bins up to "
+            f"{self.frequencies.max():.4g} Hz (slow Nyquist {self.slow_nyquist:.4g} Hz)"
+        )
+        lines.append(
+            f"  whitened RMS gap: before {self.gap_before:.3g} "
+            f"(p = {self.p_value_before:.2g}), after {self.gap_after:.3g} "
+            f"(p = {self.p_value_after:.2g}); about 1 = agreement within noise"
+        )
+        if not self.findings:
+            lines.append("  no significant discrepancy: the model agrees with the "
+                         "measurement within noise.")
+            return "\n".join(lines)
+        for i, finding in enumerate(self.findings, 1):
+            lines.append(f"  {i}. {finding.effect}: {finding.description}")
+            for name, value in finding.parameters.items():
+                ci = finding.confidence_intervals.get(name)
+                ci_text = f"  95% CI [{ci[0]:.4g}, {ci[1]:.4g}]" if ci else ""
+                lines.append(f"       {name} = {value:.5g}{ci_text}")
+            lines.append(
+                f"       evidence: band {finding.band[0]:.4g}-{finding.band[1]:.4g} Hz,"
+                f" LR statistic {finding.statistic:.3g} (p = {finding.p_value:.2g})"
+            )
+            if finding.effect == "ambiguous":
+                alternatives = ", ".join(
+                    f"{c['label']} (BIC {c['bic']:.1f})" for c in finding.candidates[:4]
+                )
+                lines.append(f"       alternatives: {alternatives}")
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        """JSON-serialisable summary (no arrays of the full spectra)."""
+        return {
+            "findings": [f.to_dict() for f in self.findings],
+            "gap_before": _plain(self.gap_before),
+            "gap_after": _plain(self.gap_after),
+            "p_value_before": _plain(self.p_value_before),
+            "p_value_after": _plain(self.p_value_after),
+            "slow_nyquist_hz": _plain(self.slow_nyquist),
+            "closed_loop": self.closed_loop,
+            "n_bins": int(self.frequencies.size),
+            "calibration": _calibration_dict(self.calibration),
+            "settings": _plain(self.settings),
+        }
+
+    def plot(self, *, axes=None):
+        """Bode plot with the +/-2 std band and the discrepancy spectra.
+
+        Parameters
+        ----------
+        axes : sequence of 3 matplotlib Axes, optional
+            Magnitude, phase and discrepancy axes; created if not given.
+
+        Returns
+        -------
+        dict
+            ``{"figure", "axes"}`` plus the drawn line objects by name.
+        """
+        import matplotlib.pyplot as plt
+
+        if axes is None:
+            fig, axes = plt.subplots(3, 1, figsize=(8, 9), sharex=True)
+        else:
+            fig = axes[0].figure
+        f = self.frequencies
+        mag, phase, disc = axes
+        meas = np.abs(self.measured)
+        low = np.maximum(meas - 2 * self.std, meas * 1e-3)
+        drawn = {}
+        drawn["band"] = mag.fill_between(f, low, meas + 2 * self.std, color="0.8",
+                                         label="measurement +/- 2 std")
+        (drawn["measured"],) = mag.loglog(f, meas, "k.", ms=2, label="measurement")
+        (drawn["before"],) = mag.loglog(f, np.abs(self.model_before), "C0",
+                                        label="model")
+        (drawn["after"],) = mag.loglog(f, np.abs(self.model_after), "C3--",
+                                       label="updated model")
+        mag.set_ylabel("magnitude")
+        phase.semilogx(f, np.degrees(np.angle(self.measured)), "k.", ms=2)
+        phase.semilogx(f, np.degrees(np.angle(self.model_before)), "C0")
+        phase.semilogx(f, np.degrees(np.angle(self.model_after)), "C3--")
+        phase.set_ylabel("phase (deg)")
+        disc.semilogy(f, self.spectrum_before, "C0", label="before")
+        disc.semilogy(f, self.spectrum_after, "C3", label="after")
+        disc.axhline(self.threshold_before, color="C0", ls=":", label="threshold")
+        disc.axhline(self.threshold_after, color="C3", ls=":")
+        disc.set_ylabel("discrepancy")
+        disc.set_xlabel("frequency (Hz)")
+        for ax in axes:
+            ax.axvline(self.slow_nyquist, color="0.5", ls="-.", lw=1)
+        mag.legend(loc="best", fontsize="small")
+        disc.legend(loc="best", fontsize="small")
+        names = ", ".join(self.effects) or "no findings"
+        mag.set_title(f"Diagnosis: {names}")
+        drawn.update(figure=fig, axes=list(axes))
+        return drawn
+
+
+def _calibration_dict(calibration) -> dict | None:
+    if calibration is None:
+        return None
+    return {
+        "method": calibration.method,
+        "n_runs": calibration.n_runs,
+        "std_scale_rms": _plain(calibration.std_scale),
+        "inflation": _plain(calibration.inflation),
+        "spectrum_shape": _plain(calibration.spectrum_shape),
+        "window": calibration.window,
+    }
+
+
+def _plain(value):
+    """Convert numpy scalars, arrays and tuples to JSON-friendly values."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _plain(value.tolist())
+    if isinstance(value, (np.bool_, bool)):
+        return bool(value)
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        value = float(value)
+        return value if math.isfinite(value) else None
+    return value

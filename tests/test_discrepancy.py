@@ -1,0 +1,494 @@
+"""Tests of the model-vs-measurement workflow (lrmfrf.discrepancy).
+
+Fast tier: known answers of the model surgery and the exact ZOH with
+fractional delay (checked against an independent fine-rate lifting), the
+calibrated tests on synthetic residuals, one seeded hidden-effect run per
+effect class on the wafer stage, the report, and every bad-input message.
+The detection statistics (>= 100 runs per class) are in
+``benchmarks/discrepancy.py``; a smaller slow version is marked ``slow``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+
+import control
+import numpy as np
+import pytest
+import scipy.stats
+
+from lrmfrf import LRMBeyondNyquist
+from lrmfrf.discrepancy import (
+    Effect,
+    Gain,
+    LowPass,
+    ModeShift,
+    default_effects,
+    diagnose,
+)
+from lrmfrf.discrepancy._models import (
+    ContinuousPlant,
+    as_continuous_plant,
+    discrete_response,
+    frequency_response,
+    resonances,
+    to_discrete_ss,
+)
+from lrmfrf.discrepancy.detect import (
+    _coloured_noise,
+    _inflation,
+    global_test,
+    uncalibrated,
+)
+from lrmfrf.discrepancy.effects import add_mode, split_mode
+from lrmfrf.discrepancy.hidden import (
+    HiddenEffect,
+    _lifted_zoh,
+    _true_plant,
+    hidden_effect_experiment,
+    score,
+)
+from lrmfrf.plants import wafer_stage
+from lrmfrf.signals import multisine
+from lrmfrf.simulate import simulate
+
+TS = 0.5e-3
+FREQS = np.linspace(1.0, 999.0, 257)
+
+
+@pytest.fixture(scope="module")
+def stage():
+    return wafer_stage()
+
+
+@pytest.fixture(scope="module")
+def nominal(stage):
+    return as_continuous_plant(stage.plant[0, 0], TS)
+
+
+def _relative(a, b):
+    return float(np.max(np.abs(a - b) / np.abs(b)))
+
+
+# ---------------------------------------------------------------------------
+# Models: inverse ZOH, exact ZOH with fractional delay, model surgery
+# ---------------------------------------------------------------------------
+
+
+def test_inverse_zoh_recovers_the_continuous_plant(stage, nominal):
+    # ZOH of the recovered continuous model reproduces the discrete plant, and
+    # its response equals the ZOH of the original continuous plant.
+    direct = frequency_response(stage.plant[0, 0], FREQS, TS)
+    assert _relative(discrete_response(nominal, FREQS, TS), direct) < 1e-10
+    original = as_continuous_plant(stage.plant_continuous[0, 0], TS)
+    assert _relative(discrete_response(original, FREQS, TS), direct) < 1e-10
+
+
+@pytest.mark.parametrize("delay_samples", [0.0, 0.2, 1.0, 1.35, 2.75])
+def test_fractional_delay_zoh_matches_independent_lifting(stage, delay_samples):
+    # Two independent constructions of the exact ZOH of a delayed plant: the
+    # matrix-exponential integrals (workflow) and the sum over 20 fine ZOH
+    # steps (generator). Delays are multiples of Ts/20 so both are exact.
+    plant = stage.plant_continuous[0, 0]
+    delay = delay_samples * TS
+    lifted = _lifted_zoh(control.ss(plant), TS, delay)
+    ours = as_continuous_plant(plant, TS).with_(delay=delay)
+    assert _relative(discrete_response(ours, FREQS, TS),
+                     frequency_response(lifted, FREQS, TS)) < 1e-8
+    # and the state-space realisation (shift register) has the same response
+    assert _relative(frequency_response(to_discrete_ss(ours, TS), FREQS, TS),
+                     discrete_response(ours, FREQS, TS)) < 1e-10
+
+
+def test_integer_delay_is_a_pure_shift(nominal):
+    z = np.exp(2j * np.pi * FREQS * TS)
+    delayed = discrete_response(nominal.with_(delay=2 * TS), FREQS, TS)
+    assert _relative(delayed, discrete_response(nominal, FREQS, TS) * z**-2) < 1e-12
+
+
+def test_split_and_add_mode_is_identity(nominal):
+    base = discrete_response(nominal, FREQS, TS)
+    for mode in resonances(nominal):
+        rest, b1, b0 = split_mode(nominal, mode.frequency, mode.damping)
+        rebuilt = add_mode(rest, mode.frequency, mode.damping, b0, b1)
+        assert _relative(discrete_response(rebuilt, FREQS, TS), base) < 1e-9
+
+
+def test_resonances_are_the_stage_modes(stage, nominal):
+    found = [m.frequency for m in resonances(nominal)]
+    expected = sorted(stage.resonance_frequencies_hz)
+    np.testing.assert_allclose(found, expected, rtol=1e-9)
+    np.testing.assert_allclose([m.damping for m in resonances(nominal)],
+                               [m.damping for m in sorted(stage.modes,
+                                key=lambda m: m.frequency_hz)], rtol=1e-6)
+
+
+def test_mode_shift_equals_the_shifted_true_plant(stage, nominal):
+    # the generator moves mode 2 in the physical model; the catalogue moves
+    # the pole pair of the (inverse-ZOH) model keeping its numerator
+    truth = HiddenEffect("mode_shift", {"frequency": 440.0 * 1.06, "damping": 0.02},
+                         {"mode_index": 2})
+    true_plant = _true_plant(stage, (truth,))
+    target = [m for m in resonances(nominal) if abs(m.frequency - 440) < 1][0]
+    shifted = ModeShift(target=target).apply(nominal, truth.parameters)
+    assert _relative(discrete_response(shifted, FREQS, TS),
+                     frequency_response(true_plant, FREQS, TS)) < 1e-8
+
+
+def test_low_pass_and_gain_known_answers(stage, nominal):
+    cutoff = 800.0
+    series = control.tf([1.0], [1 / (2 * np.pi * cutoff), 1.0])
+    expected = control.sample_system(stage.plant_continuous[0, 0] * series, TS, "zoh")
+    got = LowPass().apply(nominal, {"cutoff": cutoff})
+    assert _relative(discrete_response(got, FREQS, TS),
+                     frequency_response(expected, FREQS, TS)) < 1e-9
+    gained = Gain().apply(nominal, {"gain": 1.2})
+    assert _relative(discrete_response(gained, FREQS, TS),
+                     1.2 * discrete_response(nominal, FREQS, TS)) < 1e-12
+
+
+def test_discrete_plant_with_wrong_sample_time_is_rejected(stage):
+    with pytest.raises(ValueError, match="sample time dt=0.001"):
+        as_continuous_plant(control.sample_system(stage.plant_continuous[0, 0],
+                                                  1e-3), TS)
+
+
+def test_discrete_plant_without_zoh_equivalent_is_rejected():
+    plant = control.ss([[-0.5]], [[1.0]], [[1.0]], [[0.0]], TS)
+    with pytest.raises(ValueError, match="non-positive real axis"):
+        as_continuous_plant(plant, TS)
+
+
+# ---------------------------------------------------------------------------
+# Calibrated tests on synthetic residuals
+# ---------------------------------------------------------------------------
+
+
+def test_global_test_false_alarm_rate_independent_bins():
+    # |w|^2 ~ Exp(1) independent: the family-wise false-alarm rate of the
+    # combined (mean + spectrum max) test must be about alpha or less.
+    # 2000 draws: the binomial std of a 1 % rate is 0.22 %; allow 2 %.
+    rng = np.random.default_rng(0)
+    cal = uncalibrated(400, window=9, inflation=1.0)
+    alarms = [global_test(rng.exponential(size=400), cal, 0.01).significant
+              for _ in range(2000)]
+    assert np.mean(alarms) < 0.02
+
+
+def test_inflation_measures_correlation():
+    # Moving sum of L independent complex normals: correlation rho(l) =
+    # (L - |l|) / L, and the variance of a band mean of |w|^2 is inflated by
+    # c = sum_l rho(l)^2 (= 4.06 for L = 6) for bands much wider than L.
+    rng = np.random.default_rng(1)
+    L, K, runs = 6, 600, 200
+    z = (rng.standard_normal((runs, K + L)) + 1j * rng.standard_normal((runs, K + L)))
+    w = np.stack([np.convolve(row, np.ones(L), "valid")[:K] for row in z])
+    w2 = np.abs(w) ** 2
+    w2 /= w2.mean()
+    c = _inflation(w2, 8)
+    lags = np.arange(-L + 1, L)
+    expected = float(np.sum(((L - np.abs(lags)) / L) ** 2))
+    # 200 runs x 8 bands: relative std of the pooled variance about 4 %
+    assert abs(c / expected - 1) < 0.15
+    cal = uncalibrated(K, window=9, inflation=c)
+    alarms = [global_test(row, cal, 0.05).significant for row in w2]
+    assert np.mean(alarms) < 0.1
+
+
+def test_coloured_noise_has_the_requested_spectrum():
+    rng = np.random.default_rng(2)
+    M = 400
+    std = np.linspace(1.0, 3.0, M // 2 + 1)
+    noise = _coloured_noise(std, M, 2000, rng)
+    power = np.mean(np.abs(np.fft.fft(noise, axis=1)[:, : M // 2 + 1]) ** 2, axis=0)
+    # 2000 records: relative std of each mean power is 1/sqrt(2000) = 2.2 %
+    np.testing.assert_allclose(power[1:-1], std[1:-1] ** 2, rtol=0.12)
+
+
+# ---------------------------------------------------------------------------
+# Hidden effects on the wafer stage (fast tier: one seed per class)
+# ---------------------------------------------------------------------------
+
+
+def _run(hidden, seed, **kwargs):
+    experiment = hidden_effect_experiment(hidden, rng=seed)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        report = diagnose(
+            experiment.plant, experiment.u_h, experiment.y_l, experiment.F,
+            sample_time=experiment.sample_time, controller=experiment.controller,
+            calibration_runs=6, random_state=seed, **kwargs,
+        )
+    return experiment, report, score(experiment, report)
+
+
+def test_generator_no_effect_is_the_nominal_loop(stage):
+    experiment = hidden_effect_experiment(None, rng=0, stage=stage)
+    assert experiment.effects == ()
+    assert _relative(frequency_response(experiment.true_system, FREQS, TS),
+                     frequency_response(stage.G_y4, FREQS, TS)) < 1e-8
+    assert experiment.u_h.shape == (4, 1200) and experiment.y_l.shape == (4, 400)
+    assert np.isclose(experiment.u_h[0].std(), 1.44)
+
+
+def test_no_effect_gives_no_findings():
+    _, report, result = _run(None, 3)
+    assert report.findings == []
+    assert 0.7 < report.gap_before < 1.3
+    assert report.gap_after == report.gap_before
+    assert not result["any_finding"]
+
+
+@pytest.mark.parametrize(
+    "kind, seed",
+    [("gain", 11), ("delay", 12), ("low_pass", 13), ("mode_shift", 14),
+     ("missing_mode_high", 15)],
+)
+def test_one_hidden_effect_is_named_with_accurate_parameters(kind, seed):
+    experiment, report, result = _run(kind, seed)
+    assert result["exact"], report.summary()
+    assert result["parameters_ok"], (result["errors"], report.summary())
+    assert result["gap_ok"], report.summary()
+    if kind == "missing_mode_high":
+        # a mode above the slow Nyquist frequency, found from slow-rate data
+        assert report.findings[0].parameters["frequency"] > report.slow_nyquist
+
+
+def test_two_hidden_effects_are_both_named():
+    _, report, result = _run(("delay", "missing_mode"), 21)
+    assert result["all_named"], report.summary()
+
+
+def test_custom_effect_joins_the_catalogue():
+    # An open catalogue: a user effect (a sign-preserving output scaling named
+    # "sensor_scale") replaces the built-in gain and is found instead of it.
+    class SensorScale(Gain):
+        name = "sensor_scale"
+        parameter_names = ("scale",)
+
+        def initial_guesses(self, context):
+            return [{"scale": g["gain"]} for g in super().initial_guesses(context)]
+
+        def bounds(self, context):
+            return {"scale": (0.05, 20.0)}
+
+        def apply(self, plant, params):
+            return super().apply(plant, {"gain": params["scale"]})
+
+        def describe(self, params):
+            return f"sensor scale {params['scale']:.4g}"
+
+    catalogue = [SensorScale()] + [e for e in default_effects()
+                                   if not isinstance(e, Gain)]
+    truth = HiddenEffect("gain", {"gain": 1.15})
+    _, report, _ = _run((truth,), 31, effects=catalogue)
+    assert [f.effect for f in report.findings] == ["sensor_scale"]
+    assert abs(report.findings[0].parameters["scale"] / 1.15 - 1) < 0.02
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["gain", "delay", "low_pass", "missing_mode",
+                                  "mode_shift"])
+def test_hidden_effect_statistics_small(kind):
+    # 10 seeded runs per class; issue 6 asks >= 90 % over >= 100 runs (see the
+    # benchmark). With 10 runs, >= 8 right keeps a 90 %-rate method passing
+    # with probability 0.93.
+    right = sum(_run(kind, 100 + s)[2]["exact"] for s in range(10))
+    assert right >= 8
+
+
+@pytest.mark.slow
+def test_no_effect_false_alarms_small():
+    # 20 runs; at a true rate of 5 %, P(more than 3 alarms) = 1.6 %.
+    alarms = sum(_run(None, 200 + s)[2]["any_finding"] for s in range(20))
+    assert alarms <= 3
+
+
+# ---------------------------------------------------------------------------
+# Report
+# ---------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def delay_report():
+    truth = HiddenEffect("delay", {"delay": 0.3e-3})
+    return _run((truth,), 41)[1]
+
+
+def test_report_contents(delay_report):
+    report = delay_report
+    assert report.effects == ["delay"]
+    finding = report.findings[0]
+    assert set(finding.parameters) == {"delay"}
+    low, high = finding.confidence_intervals["delay"]
+    assert low < finding.parameters["delay"] < high
+    assert finding.band[0] < finding.band[1]
+    assert finding.p_value < 1e-6
+    assert report.updated_plant.dt == TS
+    # the updated model's response is the one the gap_after was computed with
+    G = frequency_response(report.updated_plant, report.frequencies, TS)
+    C = frequency_response(wafer_stage().controller, report.frequencies, TS)
+    seen = G / (1 + C * G)
+    gap = np.sqrt(np.mean(np.abs(report.measured - seen) ** 2 / report.std**2))
+    assert math.isclose(gap, report.gap_after, rel_tol=1e-6)
+
+
+def test_report_summary_and_json(delay_report):
+    text = delay_report.summary()
+    assert "delay" in text and "gap" in text
+    data = json.loads(json.dumps(delay_report.to_dict()))
+    assert data["findings"][0]["effect"] == "delay"
+    assert set(data["findings"][0]["parameters"]) == {"delay"}
+
+
+def test_report_plot(delay_report):
+    matplotlib = pytest.importorskip("matplotlib")
+    matplotlib.use("Agg")
+    drawn = delay_report.plot()
+    assert len(drawn["axes"]) == 3
+    import matplotlib.pyplot as plt
+
+    plt.close(drawn["figure"])
+
+
+# ---------------------------------------------------------------------------
+# Bad input
+# ---------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def small_data(stage):
+    rng = np.random.default_rng(5)
+    u = np.stack([multisine(1200, rms=1.44, rng=rng) for _ in range(2)])
+    y = np.stack([simulate(stage.G_y4, ui, 3, snr_db=45, rng=rng).y_l for ui in u])
+    return u, y
+
+
+def _call(stage, u, y, **kwargs):
+    options = {"sample_time": TS, "controller": stage.controller,
+               "calibration_runs": 0, "max_effects": 0}
+    options.update(kwargs)
+    plant = options.pop("plant", stage.plant[0, 0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return diagnose(plant, u, y, 3, **options)
+
+
+def test_plant_with_wrong_sample_time(stage, small_data):
+    plant = control.sample_system(stage.plant_continuous[0, 0], 1e-3)
+    with pytest.raises(ValueError, match="sample time dt=0.001 s but the data"):
+        _call(stage, *small_data, plant=plant)
+
+
+def test_mimo_plant_is_rejected(stage, small_data):
+    with pytest.raises(ValueError, match="must be SISO.*stage.plant\\[0, 0\\]"):
+        _call(stage, *small_data, plant=stage.plant)
+
+
+def test_plant_of_wrong_type(stage, small_data):
+    with pytest.raises(TypeError, match="python-control StateSpace"):
+        _call(stage, *small_data, plant=np.eye(2))
+
+
+def test_unstable_closed_loop(stage, small_data):
+    with pytest.raises(ValueError, match="closed loop .* is unstable"):
+        _call(stage, *small_data, controller=stage.controller * 20)
+
+
+def test_continuous_controller(stage, small_data):
+    with pytest.raises(ValueError, match="`controller` must be discrete"):
+        _call(stage, *small_data, controller=control.tf([1.0], [1.0, 1.0]))
+
+
+def test_data_shorter_than_the_estimator_needs(stage):
+    u = multisine(60, rng=0)
+    y = simulate(stage.G_y4, u, 3).y_l
+    with pytest.raises(ValueError, match="could not be fitted to the data"):
+        _call(stage, u, y)
+
+
+def test_nan_std_bins_are_dropped_with_a_warning(stage, small_data):
+    u, y = small_data
+    est = LRMBeyondNyquist().fit(u, y, 3, sample_time=TS)
+    est.frf_std_ = est.frf_std_.copy()
+    est.frf_std_[100:105] = np.nan
+    est.frf_std_[200] = 0.0
+    with pytest.warns(UserWarning, match="6 of 600 bins .* left out"):
+        report = diagnose(stage.plant[0, 0], u, y, 3, sample_time=TS,
+                          controller=stage.controller, estimator=est,
+                          calibration_runs=0, max_effects=0)
+    assert report.frequencies.size == 594
+    assert np.all(np.isfinite(report.std))
+
+
+def test_zero_std_everywhere_is_an_error(stage, small_data):
+    u, y = small_data
+    est = LRMBeyondNyquist().fit(u, y, 3, sample_time=TS)
+    est.frf_std_ = np.zeros_like(est.frf_std_)
+    with pytest.raises(ValueError, match="only 0 of 600 bins"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            diagnose(stage.plant[0, 0], u, y, 3, sample_time=TS,
+                     controller=stage.controller, estimator=est)
+
+
+def test_fitted_estimator_must_match_the_data(stage, small_data):
+    u, y = small_data
+    est = LRMBeyondNyquist().fit(u[:, :600], y[:, :200], 3, sample_time=TS)
+    with pytest.raises(ValueError, match="does not match the data"):
+        _call(stage, u, y, estimator=est)
+
+
+def test_uncalibrated_fallback_warns_without_noise_estimate(stage, small_data):
+    u, y = small_data
+
+    class NoNoise(LRMBeyondNyquist):
+        def fit(self, *args, **kwargs):
+            super().fit(*args, **kwargs)
+            del self.noise_variance_
+            return self
+
+    with pytest.warns(UserWarning, match="cannot be calibrated by simulation"):
+        report = diagnose(stage.plant[0, 0], u, y, 3, sample_time=TS,
+                          controller=stage.controller, estimator=NoNoise(),
+                          max_effects=0)
+    assert report.calibration.method == "uncalibrated"
+
+
+@pytest.mark.parametrize(
+    "kwargs, error, match",
+    [
+        ({"alpha": 1.5}, ValueError, "`alpha` must be in"),
+        ({"effect_alpha": "x"}, TypeError, "`effect_alpha` must be a probability"),
+        ({"calibration_runs": 1}, ValueError, "`calibration_runs` must be 0"),
+        ({"max_effects": -1}, ValueError, "`max_effects` must be an integer >= 0"),
+        ({"ic_margin": -2.0}, ValueError, "`ic_margin` must be a finite number"),
+        ({"sample_time": 0.0}, ValueError, "`sample_time` must be a positive"),
+        ({"effects": ["gain"]}, TypeError, "`effects` must hold Effect instances"),
+        ({"calibration": 3}, TypeError, "`calibration` must be a Calibration"),
+        ({"band": (500.0, 100.0)}, ValueError, "`band` must satisfy 0 <= low"),
+        ({"band": "low"}, TypeError, "`band` must be a pair"),
+    ],
+)
+def test_bad_settings(stage, small_data, kwargs, error, match):
+    with pytest.raises(error, match=match):
+        _call(stage, *small_data, **kwargs)
+
+
+def test_inputs_are_not_modified(stage, small_data):
+    u, y = small_data
+    u0, y0 = u.copy(), y.copy()
+    _call(stage, u, y)
+    np.testing.assert_array_equal(u, u0)
+    np.testing.assert_array_equal(y, y0)
+
+
+def test_effect_base_class_is_abstract():
+    context = None
+    with pytest.raises(NotImplementedError):
+        Effect().initial_guesses(context)
+    plant = ContinuousPlant(np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0)),
+                            np.ones((1, 1)))
+    assert scipy.stats is not None and plant.n_states == 0
