@@ -109,6 +109,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_fit_parser(sub)
     _add_example_parser(sub)
     _add_demo_parser(sub)
+    _add_diagnose_parser(sub)
     return parser
 
 
@@ -201,6 +202,40 @@ def _add_demo_parser(sub) -> None:
                       help="output signal-to-noise ratio in dB (default 45)")
     _add_common(demo)
     demo.set_defaults(handler=_run_demo)
+
+
+def _add_diagnose_parser(sub) -> None:
+    diag = sub.add_parser(
+        "diagnose",
+        help="find what a plant model misses, given measured data",
+        description="Compare a python-control plant model with a measured "
+        "beyond-Nyquist FRF, name the missing effects (gain, delay, low_pass, "
+        "missing_mode, mode_shift), add them and report the gap before and after. "
+        "The model is a Python file that defines `plant` (and optionally "
+        "`controller`, for closed-loop data P/(1+CP)); the file is executed, so "
+        "only pass files you trust. Writes diagnosis.txt, diagnosis.json and "
+        "diagnosis.png into --out.",
+    )
+    diag.add_argument("model", type=Path, metavar="MODEL.py",
+                      help="Python file defining `plant` (and `controller`)")
+    diag.add_argument("data", type=Path, metavar="DATA",
+                      help=".csv (header row), .npz or .mat file")
+    diag.add_argument("--F", dest="F", type=_positive_int, required=True,
+                      help="downsampling factor (slow / fast sample time)")
+    diag.add_argument("--sample-time", type=_positive_float, required=True,
+                      metavar="SECONDS", help="fast sample time in seconds")
+    diag.add_argument("--out", type=Path, required=True, metavar="DIR",
+                      help="output folder (created if needed)")
+    diag.add_argument("--open-loop", action="store_true",
+                      help="ignore `controller`: the data are the plant itself")
+    diag.add_argument("--seed", type=_nonnegative_int, default=0,
+                      help="seed of the calibration simulations (default 0)")
+    diag.add_argument("--input-column", default="u", metavar="NAME")
+    diag.add_argument("--output-column", default="y", metavar="NAME")
+    diag.add_argument("--no-plot", action="store_true",
+                      help="do not draw diagnosis.png")
+    _add_common(diag)
+    diag.set_defaults(handler=_run_diagnose)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -563,6 +598,81 @@ def _run_demo(args, parser) -> int:
         print(result.table)
         for path in result.files:
             print(f"wrote {path}")
+    return 0
+
+
+# --------------------------------------------------------------------------
+# diagnose
+# --------------------------------------------------------------------------
+
+DIAGNOSE_OUTPUTS = ("diagnosis.txt", "diagnosis.json", "diagnosis.png")
+
+
+def _load_model(path: Path, open_loop: bool):
+    """Run the user's model file and return ``(plant, controller)``."""
+    import runpy
+
+    if not path.is_file():
+        raise CLIError(f"{path}: model file not found. Pass a .py file that "
+                       "defines `plant`.")
+    try:
+        namespace = runpy.run_path(str(path))
+    except Exception as exc:
+        raise CLIError(
+            f"{path}: the model file failed to run: {_one_line(exc)}. Fix the "
+            "file (run it with python to see the traceback)."
+        ) from exc
+    if "plant" not in namespace:
+        raise CLIError(f"{path}: the model file defines no `plant`. Assign the "
+                       "python-control plant model to a variable named plant.")
+    controller = None if open_loop else namespace.get("controller")
+    return namespace["plant"], controller
+
+
+def _run_diagnose(args, parser) -> int:
+    import json
+
+    from .discrepancy import diagnose
+    from .io import atomic_open, check_output_path, read_measurement
+
+    plant, controller = _load_model(args.model, args.open_loop)
+    data = read_measurement(args.data, F=args.F, input_column=args.input_column,
+                            output_column=args.output_column)
+    if args.out.exists() and not args.out.is_dir():
+        raise CLIError(f"{args.out}: --out is a file, not a folder. Choose a folder.")
+    protect = [args.data, args.model]
+    outputs = [args.out / name for name in DIAGNOSE_OUTPUTS]
+    for path in outputs:
+        check_output_path(path, overwrite=args.force, protect=protect)
+    try:
+        report = diagnose(plant, data.u_h, data.y_l, args.F,
+                          sample_time=args.sample_time, controller=controller,
+                          random_state=args.seed)
+    except (ValueError, TypeError) as exc:
+        raise CLIError(f"{args.data}: {_one_line(exc)}") from exc
+    args.out.mkdir(parents=True, exist_ok=True)
+    write = {"overwrite": args.force, "protect": protect}
+    text_path, json_path, png_path = outputs
+    with atomic_open(text_path, **write) as fh:
+        fh.write(report.summary().encode("utf-8"))
+    with atomic_open(json_path, **write) as fh:
+        fh.write(json.dumps(report.to_dict(), indent=1).encode("utf-8"))
+    if not args.no_plot:
+        import io as _io
+
+        import matplotlib
+
+        matplotlib.use("Agg", force=False)
+        import matplotlib.pyplot as plt
+
+        drawn = report.plot()
+        buffer = _io.BytesIO()
+        drawn["figure"].savefig(buffer, format="png", dpi=110)
+        plt.close(drawn["figure"])
+        with atomic_open(png_path, **write) as fh:
+            fh.write(buffer.getvalue())
+    if not args.quiet:
+        print(report.summary())
     return 0
 
 
