@@ -20,6 +20,8 @@ __all__ = [
     "check_local_degrees",
     "check_nonnegative_int",
     "check_positive_float",
+    "check_siso_system",
+    "check_sample_time",
 ]
 
 
@@ -236,3 +238,70 @@ def check_positive_float(value, name: str, *, allow_none: bool):
             "Use the default unless you have a reason not to."
         )
     return number
+
+
+def check_siso_system(
+    system,
+    name: str,
+    *,
+    discrete: bool = True,
+    state_space_only: bool = False,
+    hint: str = "system[0, 0]",
+):
+    """Check that ``system`` is a SISO python-control model (discrete by default).
+
+    Parameters
+    ----------
+    system : object
+        The model to check.
+    name : str
+        How the message calls it (e.g. ``"`plant`"``).
+    discrete : bool, default=True
+        Also require a discrete-time system with a known sample time.
+    state_space_only : bool, default=False
+        Accept only ``control.StateSpace`` (not ``TransferFunction``).
+    hint : str
+        Example channel selection for the SISO message.
+
+    Returns
+    -------
+    The system, unchanged.
+    """
+    import control
+
+    allowed = (control.StateSpace,) if state_space_only else (
+        control.StateSpace, control.TransferFunction)
+    if not isinstance(system, allowed):
+        kinds = "StateSpace" if state_space_only else "StateSpace or TransferFunction"
+        raise TypeError(
+            f"{name} must be a control.{kinds} (python-control StateSpace); got "
+            f"{type(system).__name__}. Build it with control.ss(...)."
+        )
+    if system.ninputs != 1 or system.noutputs != 1:
+        raise ValueError(
+            f"{name} must be SISO; got {system.noutputs} outputs and "
+            f"{system.ninputs} inputs. Select one channel, e.g. {hint}."
+        )
+    if discrete and not control.isdtime(system, strict=True):
+        raise ValueError(
+            f"{name} must be discrete-time; got dt={system.dt!r}. Discretise it "
+            "first, e.g. control.sample_system(sys, Ts, 'zoh')."
+        )
+    return system
+
+
+def check_sample_time(sample_time) -> float:
+    """Return the fast sample time in seconds as a positive finite float."""
+    try:
+        value = float(sample_time)
+    except (TypeError, ValueError) as exc:
+        raise TypeError(
+            f"`sample_time` must be a positive number of seconds. Got "
+            f"{sample_time!r}."
+        ) from exc
+    if not np.isfinite(value) or value <= 0:
+        raise ValueError(
+            f"`sample_time` must be a positive, finite number of seconds (the fast "
+            f"sample time). Got {sample_time!r}."
+        )
+    return value

@@ -83,6 +83,8 @@ import control
 import numpy as np
 import scipy.linalg
 
+from ._validation import check_sample_time, check_siso_system
+
 __all__ = [
     "DEFAULT_MODES",
     "Margins",
@@ -304,7 +306,7 @@ def lead_pid_controller(
         force (N), ``dt = sample_time``.
     """
     _check_mass(mass)
-    _check_sample_time(sample_time)
+    check_sample_time(sample_time)
     if not (np.isfinite(bandwidth_hz) and 0.0 < bandwidth_hz < 1 / (16 * sample_time)):
         raise ValueError(
             f"bandwidth_hz must be in (0, {1 / (16 * sample_time):g}) Hz for "
@@ -366,21 +368,7 @@ def closed_loop(
         "controller": controller,
     }
     for name, system in systems.items():
-        if not isinstance(system, (control.StateSpace, control.TransferFunction)):
-            raise TypeError(
-                f"{name} must be a control.StateSpace or TransferFunction; got "
-                f"{type(system).__name__}."
-            )
-        if system.ninputs != 1 or system.noutputs != 1:
-            raise ValueError(
-                f"{name} must be SISO; got {system.noutputs} outputs and "
-                f"{system.ninputs} inputs. Select one channel, e.g. plant[0, 0]."
-            )
-        if not control.isdtime(system, strict=True):
-            raise ValueError(
-                f"{name} must be discrete-time; got dt={system.dt!r}. Discretise "
-                "it first, e.g. control.sample_system(sys, Ts, 'zoh')."
-            )
+        check_siso_system(system, name, hint="plant[0, 0]")
     dts = {float(system.dt) for system in systems.values()}
     if len(dts) != 1:
         raise ValueError(
@@ -516,7 +504,7 @@ def wafer_stage(
     >>> stage.G_z.nstates
     14
     """
-    _check_sample_time(sample_time)
+    check_sample_time(sample_time)
     if not (np.isfinite(damping_scale) and damping_scale >= 0):
         raise ValueError(
             f"damping_scale must be a finite number >= 0; got {damping_scale!r}."
@@ -574,13 +562,6 @@ def wafer_stage(
 def _check_mass(mass: float) -> None:
     if not (np.isscalar(mass) and np.isfinite(mass) and mass > 0):
         raise ValueError(f"mass must be a finite number > 0 kg; got {mass!r}.")
-
-
-def _check_sample_time(sample_time: float) -> None:
-    if not (np.isscalar(sample_time) and np.isfinite(sample_time) and sample_time > 0):
-        raise ValueError(
-            f"sample_time must be a finite number > 0 s; got {sample_time!r}."
-        )
 
 
 def _check_modes(modes: Sequence[Mode]) -> tuple[Mode, ...]:

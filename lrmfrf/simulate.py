@@ -29,7 +29,7 @@ import numpy as np
 import scipy.linalg
 import scipy.signal
 
-from ._validation import check_downsampling_factor
+from ._validation import check_downsampling_factor, check_siso_system
 
 __all__ = [
     "SimulationResult",
@@ -288,21 +288,7 @@ def frequency_grid(n_samples: int, sample_time: float) -> np.ndarray:
 
 def _check_system(system, sample_time):
     """Return ``A, B (n,), C (n,), D (scalar), dt`` of a discrete SISO system."""
-    if not isinstance(system, control.StateSpace):
-        raise TypeError(
-            f"system must be a control.StateSpace; got {type(system).__name__}. "
-            "Convert low-order transfer functions with control.ss(system)."
-        )
-    if system.ninputs != 1 or system.noutputs != 1:
-        raise ValueError(
-            f"system must be SISO; got {system.noutputs} outputs and "
-            f"{system.ninputs} inputs. Select one channel, e.g. system[0, 0]."
-        )
-    if not control.isdtime(system, strict=True):
-        raise ValueError(
-            f"system must be discrete-time; got dt={system.dt!r}. Discretise it "
-            "first, e.g. control.sample_system(system, Ts, 'zoh')."
-        )
+    check_siso_system(system, "system", state_space_only=True)
     dt = None if system.dt is True else float(system.dt)
     if sample_time is not None:
         if not (

@@ -17,6 +17,8 @@ import control
 import numpy as np
 import scipy.linalg
 
+from .._validation import check_siso_system
+
 __all__ = [
     "ContinuousPlant",
     "Resonance",
@@ -106,16 +108,7 @@ def as_continuous_plant(plant, sample_time: float) -> ContinuousPlant:
         If it is not SISO, its sample time differs from ``sample_time``, or it
         has no continuous ZOH equivalent (a pole on the negative real axis).
     """
-    if not isinstance(plant, (control.StateSpace, control.TransferFunction)):
-        raise TypeError(
-            "`plant` must be a python-control StateSpace or TransferFunction. Got "
-            f"{type(plant).__name__}. Build it with control.ss(...) or control.tf(...)."
-        )
-    if plant.ninputs != 1 or plant.noutputs != 1:
-        raise ValueError(
-            f"`plant` must be SISO. Got {plant.noutputs} outputs and {plant.ninputs} "
-            "inputs. Select the measured channel, e.g. stage.plant[0, 0] for y4."
-        )
+    check_siso_system(plant, "`plant`", discrete=False, hint="stage.plant[0, 0] for y4")
     system = control.ss(plant)
     A = np.array(system.A, dtype=float)
     B = np.array(system.B, dtype=float).reshape(-1, 1)

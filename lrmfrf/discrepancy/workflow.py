@@ -11,7 +11,7 @@ import numpy as np
 from sklearn.base import clone
 from threadpoolctl import threadpool_limits
 
-from .._validation import check_records
+from .._validation import check_records, check_siso_system
 from ._models import (
     ContinuousPlant,
     as_continuous_plant,
@@ -646,16 +646,7 @@ def _check_band(band) -> tuple:
 def _check_controller(controller, sample_time):
     if controller is None:
         return None
-    if not isinstance(controller, (control.StateSpace, control.TransferFunction)):
-        raise TypeError(
-            "`controller` must be a python-control StateSpace or TransferFunction. "
-            f"Got {type(controller).__name__}."
-        )
-    if controller.ninputs != 1 or controller.noutputs != 1:
-        raise ValueError(
-            f"`controller` must be SISO. Got {controller.noutputs} outputs and "
-            f"{controller.ninputs} inputs."
-        )
+    check_siso_system(controller, "`controller`", discrete=False)
     if not control.isdtime(controller, strict=True):
         raise ValueError(
             "`controller` must be discrete with dt == sample_time. Got "

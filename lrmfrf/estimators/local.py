@@ -16,6 +16,7 @@ from .._validation import (
     check_nonnegative_int,
     check_positive_float,
     check_records,
+    check_sample_time,
 )
 from ..exceptions import IdentifiabilityWarning
 from ..local_models import fit_local_models, one_sided_fast_grid
@@ -26,22 +27,6 @@ from ._base import _BaseFRFEstimator
 __all__ = ["LRMBeyondNyquist", "LPMBeyondNyquist"]
 
 logger = logging.getLogger(__name__)
-
-
-def _check_sample_time(sample_time) -> float:
-    try:
-        value = float(sample_time)
-    except (TypeError, ValueError) as exc:
-        raise TypeError(
-            f"`sample_time` must be a positive number of seconds. Got "
-            f"{sample_time!r}."
-        ) from exc
-    if not np.isfinite(value) or value <= 0:
-        raise ValueError(
-            f"`sample_time` must be a positive, finite number of seconds (the fast "
-            f"sample time). Got {sample_time!r}."
-        )
-    return value
 
 
 class _LocalModelEstimator(_BaseFRFEstimator):
@@ -73,7 +58,7 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         self
         """
         u, y, F = check_records(u_h, y_l, F)
-        sample_time = _check_sample_time(sample_time)
+        sample_time = check_sample_time(sample_time)
         P, N = u.shape
         M = y.shape[1]
         degrees = check_local_degrees(

@@ -57,13 +57,14 @@ from .._validation import (
     check_local_degrees,
     check_nonnegative_int,
     check_records,
+    check_sample_time,
 )
 from ..local_models import EXCITATION_TOL, half_slow_bins, window_excitation
 from ..progress import progress
 from ..solvers import solve_local_least_squares
 from ..windows import LocalModelLayout, local_regressor
 from ._base import _BaseFRFEstimator
-from .local import LPMBeyondNyquist, LRMBeyondNyquist, _check_sample_time
+from .local import LPMBeyondNyquist, LRMBeyondNyquist
 
 __all__ = [
     "CRITERIA",
@@ -290,7 +291,7 @@ class _LocalModelCV(_BaseFRFEstimator):
                 "instead."
             )
         u, y, F = check_records(u_h, y_l, F)
-        sample_time = _check_sample_time(sample_time)
+        sample_time = check_sample_time(sample_time)
         candidates = self._candidates()
         P, M = y.shape
         layouts, reasons = [], []

@@ -5,9 +5,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.signal import get_window
 
-from .._validation import check_nonnegative_int, check_records
+from .._validation import check_nonnegative_int, check_records, check_sample_time
 from ._base import _BaseFRFEstimator
-from .local import _check_sample_time
 
 __all__ = ["SpectralAnalysis", "zero_stuff"]
 
@@ -107,7 +106,7 @@ class SpectralAnalysis(_BaseFRFEstimator):
         self
         """
         u, y, F = check_records(u_h, y_l, F)
-        sample_time = _check_sample_time(sample_time)
+        sample_time = check_sample_time(sample_time)
         P, N = u.shape
         L, overlap = self._check_params(N)
         step = L - overlap
