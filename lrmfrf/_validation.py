@@ -19,21 +19,27 @@ __all__ = [
     "check_record_stack",
     "check_local_degrees",
     "check_nonnegative_int",
+    "check_nonnegative_int_or_none",
     "check_positive_float",
+    "check_bool",
     "check_siso_system",
     "check_sample_time",
 ]
 
 
 def check_nonnegative_int(value, name: str, *, minimum: int = 0) -> int:
-    """Return ``value`` as an int, or raise if it is not an integer >= minimum."""
+    """Return ``value`` as an int, or raise if it is not an integer >= minimum.
+
+    Whole floats (``3.0``) are accepted; ``2.5``, ``True`` and strings are not.
+    """
     if isinstance(value, bool) or not isinstance(value, numbers.Integral):
         if isinstance(value, numbers.Real) and float(value).is_integer():
             value = int(value)
         else:
             raise TypeError(
-                f"`{name}` must be an integer >= {minimum}. Got {value!r} "
-                f"of type {type(value).__name__} instead."
+                f"`{name}` must be an integer >= {minimum}. Got {value!r} of type "
+                f"{type(value).__name__} instead. Pass a whole number, e.g. "
+                f"{name}={max(minimum, 2)}."
             )
     value = int(value)
     if value < minimum:
@@ -44,6 +50,25 @@ def check_nonnegative_int(value, name: str, *, minimum: int = 0) -> int:
     return value
 
 
+def check_nonnegative_int_or_none(value, name: str, *, minimum: int = 0):
+    """``None``, or ``value`` checked by :func:`check_nonnegative_int`."""
+    if value is None:
+        return None
+    return check_nonnegative_int(value, name, minimum=minimum)
+
+
+def check_bool(value, name: str) -> bool:
+    """Return ``value`` as a bool; accepts ``True``/``False`` and ``0``/``1``."""
+    if isinstance(value, (bool, np.bool_)) or (
+        isinstance(value, numbers.Integral) and value in (0, 1)
+    ):
+        return bool(value)
+    raise TypeError(
+        f"`{name}` must be True or False. Got {value!r} of type "
+        f"{type(value).__name__} instead. Pass {name}=True or {name}=False."
+    )
+
+
 def check_downsampling_factor(F) -> int:
     """Return the downsampling factor as a positive int.
 
@@ -52,13 +77,14 @@ def check_downsampling_factor(F) -> int:
     if isinstance(F, bool) or not isinstance(F, numbers.Real):
         raise TypeError(
             f"The downsampling factor F must be a positive integer. Got {F!r} of "
-            f"type {type(F).__name__}. Pass the ratio of the slow to the fast "
-            "sample time, e.g. F=3."
+            f"type {type(F).__name__} instead. Pass the ratio of the slow to the "
+            "fast sample time, e.g. F=3."
         )
     if not float(F).is_integer() or F < 1:
         raise ValueError(
-            f"The downsampling factor F must be a positive integer. Got {F!r}. "
-            "Pass the integer ratio of the slow to the fast sample time, e.g. F=3."
+            f"The downsampling factor F must be a positive integer. Got {F!r} "
+            "instead. Pass the integer ratio of the slow to the fast sample time, "
+            "e.g. F=3."
         )
     return int(F)
 
@@ -73,17 +99,19 @@ def check_signal(x, name: str) -> np.ndarray:
         np.issubdtype(arr.dtype, np.number) or arr.dtype == bool
     ):
         raise TypeError(
-            f"`{name}` must be a numeric array. Got dtype {arr.dtype}. "
+            f"`{name}` must be a numeric array. Got dtype {arr.dtype} instead. "
             "Convert the signal to floats (check for text cells in the data)."
         )
     if np.iscomplexobj(arr):
         raise TypeError(
-            f"`{name}` must be a real time-domain signal. Got a complex array. "
+            f"`{name}` must be a real time-domain signal. Got a complex array "
+            "instead. "
             "Pass the measured time samples, not their DFT."
         )
     if arr.ndim != 1:
         raise ValueError(
-            f"`{name}` must be 1-D with shape (n_samples,). Got shape {arr.shape}. "
+            f"`{name}` must be 1-D with shape (n_samples,). Got shape {arr.shape} "
+            "instead. "
             "Pass one record per call or a 2-D array of experiments to `fit`."
         )
     if arr.size == 0:
@@ -173,6 +201,15 @@ def check_records(u_h, y_l, F) -> tuple[np.ndarray, np.ndarray, int]:
     return u, y, F
 
 
+#: Names of the local-model degrees as LRMBeyondNyquist calls them.
+LRM_PARAMETER_NAMES = {
+    "half_window": "half_window",
+    "num_degree": "num_degree",
+    "transient_degree": "transient_degree",
+    "den_degree": "den_degree",
+}
+
+
 def check_local_degrees(
     *,
     half_window: int,
@@ -182,36 +219,59 @@ def check_local_degrees(
     F: int,
     n_slow: int,
     n_experiments: int = 1,
+    parameter_names: dict | None = None,
 ) -> dict:
     """Check that the local problems are well posed and return the degrees.
 
     The conditions are eq. (uniqueConditions) of the paper, generalised to
     ``P`` experiments that share the system parameters and each have their own
     transient: ``P (2n+1) >= (R_g+1) F + P (R_t+1) + R_e`` and ``2n+1 <= M``.
+
+    Parameters
+    ----------
+    half_window, num_degree, transient_degree, den_degree : int
+        ``n``, ``R_g``, ``R_t``, ``R_e``.
+    F : int
+        Downsampling factor.
+    n_slow : int
+        ``M``, samples of the slow record.
+    n_experiments : int, default=1
+        ``P``.
+    parameter_names : dict, optional
+        How the caller's estimator names each of the four settings, for the
+        messages (e.g. LPM calls ``num_degree`` ``degree``); a name of ``None``
+        marks a setting the user cannot change (LPM's ``den_degree = 0``).
+        Default: :data:`LRM_PARAMETER_NAMES`.
+
+    Returns
+    -------
+    dict
+        The four settings as ints, keyed like the arguments.
     """
-    n = check_nonnegative_int(half_window, "half_window", minimum=1)
-    Rg = check_nonnegative_int(num_degree, "num_degree")
-    Rt = check_nonnegative_int(transient_degree, "transient_degree")
-    Re = check_nonnegative_int(den_degree, "den_degree")
+    names = {**LRM_PARAMETER_NAMES, **(parameter_names or {})}
+    n = check_nonnegative_int(half_window, names["half_window"], minimum=1)
+    Rg = check_nonnegative_int(num_degree, names["num_degree"] or "num_degree")
+    Rt = check_nonnegative_int(
+        transient_degree, names["transient_degree"] or "transient_degree"
+    )
+    Re = check_nonnegative_int(den_degree, names["den_degree"] or "den_degree")
     window = 2 * n + 1
+    max_half_window = (n_slow - 1) // 2
     if window > n_slow:
         raise ValueError(
-            f"The window 2*half_window+1 = {window} slow bins is wider than the "
-            f"slow record (M={n_slow} bins). Reduce half_window to at most "
-            f"{(n_slow - 1) // 2} or measure a longer record."
+            f"The window 2*{names['half_window']}+1 = {window} slow bins is wider "
+            f"than the slow record (M={n_slow} bins). Reduce "
+            f"{names['half_window']} to at most {max_half_window} or measure a "
+            "longer record."
         )
     P = n_experiments
     n_params = (Rg + 1) * F + P * (Rt + 1) + Re
     n_equations = P * window
     if n_equations < n_params:
-        need_n = int(np.ceil(((n_params / P) - 1) / 2))
         raise ValueError(
-            f"Too few equations for the parameters: the window gives {n_equations} "
-            f"equations but the local model has (num_degree+1)*F + "
-            f"(transient_degree+1) + den_degree = ({Rg}+1)*{F} + "
-            f"{P}*({Rt}+1) + {Re} = {n_params} parameters. Increase half_window "
-            f"to at least {need_n} or lower num_degree, transient_degree or "
-            "den_degree."
+            _too_few_equations_message(
+                names, n, Rg, Rt, Re, F, P, n_params, n_equations, max_half_window
+            )
         )
     return {
         "half_window": n,
@@ -219,6 +279,36 @@ def check_local_degrees(
         "transient_degree": Rt,
         "den_degree": Re,
     }
+
+
+def _too_few_equations_message(
+    names, n, Rg, Rt, Re, F, P, n_params, n_equations, max_half_window
+) -> str:
+    """Say how many equations and parameters there are, and what to change."""
+    num, tr, den = names["num_degree"], names["transient_degree"], names["den_degree"]
+    times_p = f"{P}*" if P > 1 else ""
+    formula = f"({num}+1)*F + {times_p}({tr}+1)"
+    values = f"({Rg}+1)*{F} + {times_p}({Rt}+1)"
+    if den is not None:
+        formula += f" + {den}"
+        values += f" + {Re}"
+    degrees = [name for name in (num, tr, den) if name is not None]
+    lower = "lower " + ", ".join(degrees[:-1]) + f" or {degrees[-1]}"
+    need_n = int(np.ceil((np.ceil(n_params / P) - 1) / 2))
+    if need_n <= max_half_window:
+        fix = f"Increase {names['half_window']} to at least {need_n}, or {lower}."
+    else:
+        fix = (
+            f"The record allows {names['half_window']} <= {max_half_window} only, "
+            f"so {lower} (or measure a longer record)."
+        )
+    equations = f"{P}*(2*{n}+1)" if P > 1 else f"2*{n}+1"
+    return (
+        f"Too few equations for the parameters: the window gives {equations} = "
+        f"{n_equations} equations but the local model has {formula} = {values} "
+        f"= {n_params} parameters (eq. uniqueConditions needs at least as many "
+        f"equations). {fix}"
+    )
 
 
 def check_positive_float(value, name: str, *, allow_none: bool):
@@ -230,12 +320,13 @@ def check_positive_float(value, name: str, *, allow_none: bool):
         number = float(value)
     except (TypeError, ValueError) as exc:
         raise TypeError(
-            f"`{name}` must be a positive number{hint}. Got {value!r}."
+            f"`{name}` must be a positive number{hint}. Got {value!r} of type "
+            f"{type(value).__name__} instead. Pass a positive finite number."
         ) from exc
     if not np.isfinite(number) or number <= 0:
         raise ValueError(
-            f"`{name}` must be a positive, finite number{hint}. Got {value!r}. "
-            "Use the default unless you have a reason not to."
+            f"`{name}` must be a positive, finite number{hint}. Got {value!r} "
+            "instead. Use the default unless you have a reason not to."
         )
     return number
 
@@ -297,11 +388,13 @@ def check_sample_time(sample_time) -> float:
     except (TypeError, ValueError) as exc:
         raise TypeError(
             f"`sample_time` must be a positive number of seconds. Got "
-            f"{sample_time!r}."
+            f"{sample_time!r} of type {type(sample_time).__name__} instead. Pass "
+            "the fast sample time, e.g. sample_time=0.5e-3."
         ) from exc
     if not np.isfinite(value) or value <= 0:
         raise ValueError(
             f"`sample_time` must be a positive, finite number of seconds (the fast "
-            f"sample time). Got {sample_time!r}."
+            f"sample time). Got {sample_time!r} instead. Pass the fast sample "
+            "time, e.g. sample_time=0.5e-3."
         )
     return value

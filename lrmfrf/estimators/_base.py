@@ -1,6 +1,9 @@
-"""Shared behaviour of the FRF estimators: fitted checks, predict, score, FRD."""
+"""Shared behaviour of the FRF estimators: parameter checks, fitted checks,
+predict, score, FRD."""
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 from sklearn.base import BaseEstimator
@@ -9,6 +12,10 @@ from sklearn.exceptions import NotFittedError
 from .._validation import check_record_stack, check_records
 
 __all__ = ["FRFEstimatorMixin"]
+
+#: An input DFT bin whose magnitude is below this fraction of the record's
+#: largest bin counts as not excited in ``predict`` (round-off of a zero).
+_UNEXCITED_TOL = 1e-12
 
 
 class FRFEstimatorMixin:
@@ -32,7 +39,10 @@ class FRFEstimatorMixin:
         """Steady-state slow-rate output predicted by the FRF.
 
         ``Y_h(k) = G(k) U_h(k)`` on the fast DFT grid, ``y_l = y_h[::F]``
-        (periodic steady state: no transient).
+        (periodic steady state: no transient). Bins where the input's DFT is
+        zero (below ``1e-12`` of its largest bin) contribute nothing, so an
+        input without energy at invalid bins (``valid_ == False``) can be
+        predicted.
 
         Parameters
         ----------
@@ -42,6 +52,15 @@ class FRFEstimatorMixin:
         Returns
         -------
         ndarray of shape (M,) or (P, M)
+            Slow output in the units of the training ``y_l``.
+
+        Raises
+        ------
+        NotFittedError
+            Before ``fit``.
+        ValueError
+            If the input has a different length than the training records, or
+            excites a frequency where the FRF is invalid.
         """
         self._check_fitted()
         F = self.downsampling_factor_
@@ -55,13 +74,16 @@ class FRFEstimatorMixin:
             )
         U = np.fft.fft(u, axis=1)
         G = self._fast_frf(self.n_samples_)
+        unexcited = np.abs(U) <= _UNEXCITED_TOL * np.abs(U).max(axis=1, keepdims=True)
         with np.errstate(invalid="ignore"):
-            Yh = np.where(U == 0, 0.0, G * U)
+            Yh = np.where(unexcited, 0.0, G * U)
         if np.isnan(Yh).any():
+            n_bad = int(np.count_nonzero(np.isnan(Yh).any(axis=0)))
             raise ValueError(
-                "The FRF is invalid (NaN) at frequencies this input excites "
-                "(see `valid_`). Refit with an input that excites every band, or "
-                "predict with an input that has no energy at the invalid bins."
+                f"The FRF is invalid (NaN) at {n_bad} fast DFT bin(s) this input "
+                "excites (see `valid_`). Refit with an input that excites every "
+                "band, or predict with an input that has no energy at the invalid "
+                "bins."
             )
         y = np.fft.ifft(Yh, axis=1).real[:, ::F]
         return y[0] if single else y
@@ -108,7 +130,36 @@ class FRFEstimatorMixin:
 
 
 class _BaseFRFEstimator(FRFEstimatorMixin, BaseEstimator):
-    """BaseEstimator with the FRF accessors."""
+    """BaseEstimator with the FRF accessors and declared parameter checks.
+
+    Each subclass declares, once, how each constructor parameter is checked:
+    ``_parameter_checks`` maps the parameter name to ``check(value, name)``,
+    which returns the validated value or raises a ``TypeError``/``ValueError``
+    naming the parameter, what was received and what to pass instead.
+    ``fit`` calls :meth:`_checked_params` first, before looking at the data
+    (checks that need the data, e.g. a window wider than the record, follow).
+    """
+
+    _parameter_checks: dict[str, Callable] = {}
+
+    def _checked_params(self) -> dict:
+        """Validated values of all constructor parameters, by name."""
+        params = self.get_params(deep=False)
+        missing = set(params) - set(self._parameter_checks)
+        if missing:  # pragma: no cover - a programming error, caught by tests
+            raise NotImplementedError(
+                f"{type(self).__name__} declares no check for {sorted(missing)}."
+            )
+        return {
+            name: self._parameter_checks[name](value, name)
+            for name, value in params.items()
+        }
+
+    def __sklearn_tags__(self):  # scikit-learn >= 1.6
+        tags = super().__sklearn_tags__()
+        tags.target_tags.required = True
+        tags.non_deterministic = False
+        return tags
 
     def _more_tags(self):  # scikit-learn < 1.6
         return {"requires_y": True, "non_deterministic": False}

@@ -8,12 +8,15 @@ from __future__ import annotations
 
 import logging
 import warnings
+from functools import partial
 
 import numpy as np
 
 from .._validation import (
+    check_bool,
     check_local_degrees,
     check_nonnegative_int,
+    check_nonnegative_int_or_none,
     check_positive_float,
     check_records,
     check_sample_time,
@@ -29,13 +32,21 @@ __all__ = ["LRMBeyondNyquist", "LPMBeyondNyquist"]
 logger = logging.getLogger(__name__)
 
 
+_HALF_WINDOW = partial(check_nonnegative_int, minimum=1)
+
+
 class _LocalModelEstimator(_BaseFRFEstimator):
     """Common ``fit`` of the local-model estimators (LRM, LPM)."""
 
-    def _local_degrees(self) -> dict:  # pragma: no cover - abstract
+    #: How the estimator names ``half_window``, ``num_degree``,
+    #: ``transient_degree`` and ``den_degree`` (None: not a parameter).
+    _degree_names: dict = {}
+
+    def _local_degrees(self, params: dict) -> dict:  # pragma: no cover - abstract
+        """The four local-model settings from the checked parameters."""
         raise NotImplementedError
 
-    def _refine(self, U, Y, layout, local_fit):
+    def _refine(self, U, Y, layout, local_fit, params: dict):
         """Hook for iterative refinement; the closed form by default."""
         return local_fit
 
@@ -56,29 +67,51 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         Returns
         -------
         self
+            The fitted estimator.
+
+        Raises
+        ------
+        TypeError, ValueError
+            For a parameter out of range, signals that are not real, finite,
+            non-empty and 1-D (or a stack of equal-length records), ``N != F M``,
+            a window wider than the slow record, or fewer equations than
+            parameters (the message says which setting to change).
+
+        Warns
+        -----
+        IdentifiabilityWarning
+            Once, when some local problems are rank-deficient (an input that
+            does not excite every aliased band): those bins are NaN with
+            ``valid_ == False``.
         """
+        params = self._checked_params()
         u, y, F = check_records(u_h, y_l, F)
         sample_time = check_sample_time(sample_time)
         P, N = u.shape
         M = y.shape[1]
         degrees = check_local_degrees(
-            **self._local_degrees(), F=F, n_slow=M, n_experiments=P
+            **self._local_degrees(params), F=F, n_slow=M, n_experiments=P,
+            parameter_names=self._degree_names,
         )
         layout = LocalModelLayout(F=F, n_experiments=P, **degrees)
         U = np.fft.fft(u, axis=1)
         Y = np.fft.fft(y, axis=1)
         local_fit = fit_local_models(U, Y, layout)
-        local_fit = self._refine(U, Y, layout, local_fit)
+        local_fit = self._refine(U, Y, layout, local_fit, params)
         self._set_fitted(local_fit, layout, N, M, F, P, sample_time)
         return self
 
     def _set_fitted(self, local_fit, layout, N, M, F, P, sample_time) -> None:
+        valid = one_sided_fast_grid(
+            np.repeat(local_fit.well_posed[:, None], F, axis=1), N, F, conj=False
+        )
         n_bad = int(np.count_nonzero(~local_fit.well_posed))
         if n_bad:
             n_unexcited = int(np.count_nonzero(~local_fit.excited))
             msg = (
-                f"{n_bad} of {local_fit.well_posed.size} slow bins are not "
-                "identifiable: their local problem is rank-deficient "
+                f"{n_bad} of {local_fit.well_posed.size} slow bins "
+                f"({np.count_nonzero(~valid)} of {valid.size} fast bins of frf_) "
+                "are not identifiable: their local problem is rank-deficient "
                 f"({n_unexcited} of them because the input has no energy in some "
                 "aliased band of the window). Their FRF is NaN and valid_ is "
                 "False. Use an input that excites every band, e.g. a random-phase "
@@ -105,9 +138,7 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         self.frf_std_ = np.sqrt(
             one_sided_fast_grid(local_fit.system_var, N, F, conj=False)
         )
-        self.valid_ = one_sided_fast_grid(
-            np.repeat(local_fit.well_posed[:, None], F, axis=1), N, F, conj=False
-        )
+        self.valid_ = valid
         self.slow_frequencies_ = local_fit.slow_bins / (N * sample_time)
         self.noise_variance_ = local_fit.noise_var
         transient = local_fit.transient.T
@@ -168,10 +199,12 @@ class LRMBeyondNyquist(_LocalModelEstimator):
     Attributes
     ----------
     frequencies_ : ndarray of shape (N//2+1,)
-        Fast DFT grid in Hz.
+        Fast DFT grid ``k / (N T_s)`` in Hz, ``k = 0..N//2``.
     frf_ : ndarray of shape (N//2+1,), complex
+        Estimated FRF ``G(k)`` from ``u_h`` to ``y_h`` (units of ``y_l`` per
+        unit of ``u_h``); NaN where ``valid_`` is False.
     frf_std_ : ndarray of shape (N//2+1,)
-        Standard deviation of ``frf_`` (Lemma 2).
+        Standard deviation of ``frf_`` (Lemma 2, ``sqrt(E|G_hat - G|^2)``).
     valid_ : ndarray of shape (N//2+1,), bool
         False where the local problem was not well posed (``frf_`` is NaN).
     slow_frequencies_ : ndarray of shape (M//2+1,)
@@ -186,9 +219,20 @@ class LRMBeyondNyquist(_LocalModelEstimator):
     transient_ : ndarray of shape (M//2+1,) or (P, M//2+1), complex
         Transient term in the slow output DFT at each window centre.
     n_params_ : int
-        Complex parameters per local problem.
+        Complex parameters per local problem,
+        ``(R_g+1) F + P (R_t+1) + R_e``.
     dof_ : int
-        Residual degrees of freedom per local problem.
+        Residual degrees of freedom per local problem, ``P (2n+1) - n_params_``.
+    n_samples_, n_slow_, n_experiments_ : int
+        ``N``, ``M`` and ``P`` of the training records.
+    downsampling_factor_ : int
+        ``F``.
+    sample_time_ : float
+        Fast sample time in seconds.
+    layout_ : lrmfrf.windows.LocalModelLayout
+        Sizes and column order of the local problems.
+    local_fit_ : lrmfrf.local_models.LocalModelFit
+        Per-slow-bin results (parameters, band values, variances).
     cost_history_ : ndarray of shape (1 + n_sk_iter_ + n_lm_iter_,) or None
         Mean over the slow bins of the original least-squares cost
         (eq. meanCosts, ``mu_OE``) after the closed form and after each SK,
@@ -230,6 +274,19 @@ class LRMBeyondNyquist(_LocalModelEstimator):
     (601,)
     """
 
+    _parameter_checks = {
+        "half_window": _HALF_WINDOW,
+        "num_degree": check_nonnegative_int,
+        "transient_degree": check_nonnegative_int,
+        "den_degree": check_nonnegative_int,
+        "sk_iterations": check_nonnegative_int,
+        "lm_iterations": check_nonnegative_int,
+        "tol": partial(check_positive_float, allow_none=False),
+        "guard": partial(check_positive_float, allow_none=True),
+        "jump": partial(check_positive_float, allow_none=True),
+        "verbose": check_bool,
+    }
+
     def __init__(
         self,
         *,
@@ -255,28 +312,24 @@ class LRMBeyondNyquist(_LocalModelEstimator):
         self.jump = jump
         self.verbose = verbose
 
-    def _local_degrees(self) -> dict:
+    def _local_degrees(self, params: dict) -> dict:
         return {
-            "half_window": self.half_window,
-            "num_degree": self.num_degree,
-            "transient_degree": self.transient_degree,
-            "den_degree": self.den_degree,
+            "half_window": params["half_window"],
+            "num_degree": params["num_degree"],
+            "transient_degree": params["transient_degree"],
+            "den_degree": params["den_degree"],
         }
 
-    def _refine(self, U, Y, layout, local_fit):
-        sk = check_nonnegative_int(self.sk_iterations, "sk_iterations")
-        lm = check_nonnegative_int(self.lm_iterations, "lm_iterations")
-        tol = check_positive_float(self.tol, "tol", allow_none=False)
-        guard = check_positive_float(self.guard, "guard", allow_none=True)
-        jump = check_positive_float(self.jump, "jump", allow_none=True)
+    def _refine(self, U, Y, layout, local_fit, params: dict):
+        sk, lm = params["sk_iterations"], params["lm_iterations"]
         self.n_sk_iter_ = self.n_lm_iter_ = self.n_guarded_ = 0
         self.cost_history_ = self.sk_cost_history_ = None
         if not (sk or lm):
             return local_fit
         result = _refine(
-            U, Y, layout, local_fit, sk_iterations=sk, lm_iterations=lm, tol=tol,
-            guard=guard, jump=jump, keep_best=True, chunk_size=None,
-            verbose=bool(self.verbose),
+            U, Y, layout, local_fit, sk_iterations=sk, lm_iterations=lm,
+            tol=params["tol"], guard=params["guard"], jump=params["jump"],
+            keep_best=True, chunk_size=None, verbose=params["verbose"],
         )
         _emit_warnings(result, stacklevel=3)  # -> the caller of fit
         self.cost_history_ = result.cost_history
@@ -305,25 +358,57 @@ class LPMBeyondNyquist(_LocalModelEstimator):
 
     Attributes
     ----------
-    See :class:`LRMBeyondNyquist`. For LPM the residual is usually dominated by
-    model error, so ``frf_std_`` is then an RMS error estimate rather than a
-    noise standard deviation.
+    frequencies_, frf_, frf_std_, valid_, noise_variance_, transient_, n_params_, dof_
+        As for :class:`LRMBeyondNyquist` (the other fitted attributes too,
+        without those of iterative refinement). For LPM the residual is usually
+        dominated by model error, so ``frf_std_`` is then an RMS error estimate
+        rather than a noise standard deviation.
+
+    References
+    ----------
+    The LPM beyond Nyquist of van Haren et al. (2023) and the single-rate LPM
+    of Schoukens et al. (2009) and Pintelon et al. (2010), as cited
+    (``VanHaren2023a``, ``Schoukens2009``, ``Pintelon2010a``) in van Haren,
+    Blanken, Classens and Oomen, "Local Rational Modeling for Identification
+    Beyond the Nyquist Frequency: Applied to a Prototype Wafer Stage", 2024.
+
+    Examples
+    --------
+    >>> from scipy.signal import lfilter
+    >>> from lrmfrf import LPMBeyondNyquist
+    >>> from lrmfrf.signals import multisine
+    >>> u = multisine(1200, rng=0)
+    >>> y = lfilter([0.2, 0.1], [1.0, -0.5], u)[::3]
+    >>> est = LPMBeyondNyquist(half_window=18, degree=2).fit(u, y, F=3)
+    >>> est.frf_.shape, est.n_params_, est.dof_
+    ((601,), 12, 25)
     """
 
+    _parameter_checks = {
+        "half_window": _HALF_WINDOW,
+        "degree": check_nonnegative_int,
+        "transient_degree": check_nonnegative_int_or_none,
+    }
+    _degree_names = {"num_degree": "degree", "den_degree": None}
+
     def __init__(
-        self, *, half_window: int = 18, degree: int = 2, transient_degree=None
+        self,
+        *,
+        half_window: int = 18,
+        degree: int = 2,
+        transient_degree: int | None = None,
     ):
         self.half_window = half_window
         self.degree = degree
         self.transient_degree = transient_degree
 
-    def _local_degrees(self) -> dict:
-        transient = self.transient_degree
+    def _local_degrees(self, params: dict) -> dict:
+        transient = params["transient_degree"]
         if transient is None:
-            transient = self.degree
+            transient = params["degree"]
         return {
-            "half_window": self.half_window,
-            "num_degree": self.degree,
+            "half_window": params["half_window"],
+            "num_degree": params["degree"],
             "transient_degree": transient,
             "den_degree": 0,
         }

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 from scipy.signal import get_window
 
@@ -33,6 +35,19 @@ def zero_stuff(y_l: np.ndarray, F: int) -> np.ndarray:
     return out
 
 
+def _check_window(window, name: str):
+    """A window specification accepted by ``scipy.signal.get_window``."""
+    try:
+        get_window(window, 8)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(
+            f"`{name}` must be a window accepted by scipy.signal.get_window. Got "
+            f"{window!r} instead ({exc}). Use e.g. 'hann' (the paper's) or "
+            "('tukey', 0.25)."
+        ) from exc
+    return window
+
+
 class SpectralAnalysis(_BaseFRFEstimator):
     """The paper's spectral-analysis baseline, eq. (hann).
 
@@ -44,49 +59,77 @@ class SpectralAnalysis(_BaseFRFEstimator):
     Parameters
     ----------
     segment_length : int, default=200
-        Samples per segment ``L``.
+        Samples per segment ``L`` (at the fast rate).
     overlap : int, default=100
-        Samples shared by consecutive segments.
+        Samples shared by consecutive segments, ``0 <= overlap < L``.
     window : str or tuple, default="hann"
         Any window accepted by ``scipy.signal.get_window`` (periodic).
 
     Attributes
     ----------
     frequencies_ : ndarray of shape (L//2+1,)
-        Segment grid in Hz (coarser than the fast DFT grid by ``N/L``).
+        Segment grid ``p / (L T_s)`` in Hz (coarser than the fast DFT grid by
+        ``N/L``).
     frf_ : ndarray of shape (L//2+1,), complex
+        H1 estimate (units of ``y_l`` per unit of ``u_h``); NaN where the input
+        has no energy.
     frf_std_ : ndarray of shape (L//2+1,)
-        Std from the coherence, ``|G| sqrt((1 - coh) / (2 n_avg coh))`` per
-        real and imaginary part combined (Bendat and Piersol), ignoring the
-        correlation between overlapping segments.
+        Standard deviation of the complex estimate, ``sqrt(E|G_hat - G|^2)``,
+        from the coherence: ``|G| sqrt((1 - coh) / (n_avg coh))`` (Bendat and
+        Piersol's random error, whose magnitude and phase parts each carry
+        half of it), ignoring the correlation between overlapping segments.
+        It measures noise only, not the aliasing bias above the slow Nyquist
+        frequency.
     coherence_ : ndarray of shape (L//2+1,)
+        Magnitude-squared coherence of ``u_h`` and the zero-stuffed output.
     valid_ : ndarray of shape (L//2+1,), bool
+        False where the input has no energy (``frf_`` is NaN).
     n_segments_ : int
         Segments averaged (over all experiments).
+    n_samples_, n_slow_, n_experiments_, downsampling_factor_ : int
+        ``N``, ``M``, ``P`` and ``F`` of the training records.
+    sample_time_ : float
+        Fast sample time in seconds.
 
     Notes
     -----
     Zero stuffing assumes ``Y_h(k + iM) = F Y_l(k)``: above the slow Nyquist
     frequency this estimate is aliased and biased even without noise.
+    ``predict`` interpolates ``frf_`` linearly onto the fast DFT grid.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from lrmfrf import SpectralAnalysis
+    >>> from lrmfrf.signals import multisine
+    >>> u = multisine(1200, bins=np.arange(1, 200), rng=0)  # below 1/(6 T_s)
+    >>> sa = SpectralAnalysis().fit(u, 2.5 * u[::3], F=3, sample_time=0.5e-3)
+    >>> sa.n_segments_, float(sa.frequencies_[1])
+    (11, 10.0)
+    >>> bool(np.allclose(sa.frf_[2:25], 2.5, rtol=1e-3))  # 20-240 Hz
+    True
     """
+
+    _parameter_checks = {
+        "segment_length": partial(check_nonnegative_int, minimum=2),
+        "overlap": check_nonnegative_int,
+        "window": _check_window,
+    }
 
     def __init__(self, *, segment_length: int = 200, overlap: int = 100, window="hann"):
         self.segment_length = segment_length
         self.overlap = overlap
         self.window = window
 
-    def _check_params(self, n_samples: int) -> tuple[int, int]:
-        L = check_nonnegative_int(self.segment_length, "segment_length", minimum=2)
-        overlap = check_nonnegative_int(self.overlap, "overlap")
+    def _check_params(self) -> tuple[int, int]:
+        """Segment length and overlap, checked (before the data)."""
+        params = self._checked_params()
+        L, overlap = params["segment_length"], params["overlap"]
         if overlap >= L:
             raise ValueError(
-                f"overlap={overlap} must be less than segment_length={L}. "
-                "Reduce the overlap (half the segment is usual)."
-            )
-        if L > n_samples:
-            raise ValueError(
-                f"segment_length={L} exceeds the record length N={n_samples}. "
-                "Use shorter segments."
+                f"`overlap` must be less than `segment_length`. Got overlap="
+                f"{overlap} and segment_length={L} instead. Reduce the overlap "
+                "(half the segment is usual)."
             )
         return L, overlap
 
@@ -96,19 +139,28 @@ class SpectralAnalysis(_BaseFRFEstimator):
         Parameters
         ----------
         u_h : array-like of shape (N,) or (P, N), or list of P records
+            Fast-rate input(s), real.
         y_l : array-like of shape (M,) or (P, M), or list of P records
+            Slow-rate output(s), real, ``y_l(m) = y_h(m F) + noise``.
         F : int
+            Downsampling factor, ``N = F M``.
         sample_time : float, default=1.0
             Fast sample time in seconds.
 
         Returns
         -------
         self
+            The fitted estimator.
         """
+        L, overlap = self._check_params()
         u, y, F = check_records(u_h, y_l, F)
         sample_time = check_sample_time(sample_time)
         P, N = u.shape
-        L, overlap = self._check_params(N)
+        if L > N:
+            raise ValueError(
+                f"`segment_length` exceeds the record length. Got segment_length="
+                f"{L} and N={N} samples instead. Use shorter segments."
+            )
         step = L - overlap
         starts = np.arange(0, N - L + 1, step)
         taper = get_window(self.window, L)
@@ -124,7 +176,7 @@ class SpectralAnalysis(_BaseFRFEstimator):
         with np.errstate(invalid="ignore", divide="ignore"):
             frf = np.where(valid, Syu / Suu, np.nan)
             coherence = np.where(valid & (Syy > 0), np.abs(Syu) ** 2 / (Suu * Syy), 0)
-            std = np.abs(frf) * np.sqrt((1 - coherence) / (2 * n_avg * coherence))
+            std = np.abs(frf) * np.sqrt((1 - coherence) / (n_avg * coherence))
         self.n_samples_ = N
         self.n_slow_ = N // F
         self.n_experiments_ = P
