@@ -34,19 +34,21 @@ def test_in_class_data_recovered_exactly(F, P):
     assert np.all(fit.rss <= 1e-18 * np.sum(np.abs(np.fft.fft(y)) ** 2))
 
 
-def test_in_class_through_the_estimator_at_paper_degrees():
-    """Paper degrees (4, 4, 7, n = 18), F = 3: the public estimator is exact."""
-    rng = np.random.default_rng(7)
-    layout = LocalModelLayout(F=3, half_window=18, num_degree=4,
+@pytest.mark.parametrize("F, half_window", [(1, 18), (2, 18), (3, 18), (5, 24)])
+def test_in_class_through_the_estimator_at_paper_degrees(F, half_window):
+    """Paper degrees (R_g, R_t, R_e) = (4, 4, 7): the public estimator is exact.
+    F = 5 needs 5*5 + 5 + 7 = 37 parameters, so n = 24 (49 equations)."""
+    rng = np.random.default_rng(7 + F)
+    layout = LocalModelLayout(F=F, half_window=half_window, num_degree=4,
                               transient_degree=4, den_degree=7)
     u, y, centres, G = in_class_data(layout, n_slow=400, rng=rng)
-    est = LRMBeyondNyquist().fit(u[0], y[0], F=3)
+    est = LRMBeyondNyquist(half_window=half_window).fit(u[0], y[0], F=F)
     N, M = u.shape[1], y.shape[1]
     got = est.local_fit_.system[centres]
     assert np.max(np.abs(got - G) / np.abs(G)) <= 1e-9
     # The same values land on the one-sided fast grid (or its mirror).
     for i, k in enumerate(centres):
-        for f in range(3):
+        for f in range(F):
             j = k + f * M
             value = est.frf_[j] if j <= N // 2 else np.conj(est.frf_[N - j])
             assert abs(value - G[i, f]) <= 1e-9 * abs(G[i, f])
@@ -102,19 +104,32 @@ def _independent_regressor(U, Y, k, F, n, Rg, Rt, Re):
 
 
 def test_batched_solver_matches_per_bin_qr_on_noisy_data():
+    """Every slow bin: the batched estimate and the noise variance equal a
+    per-bin equilibrated QR solve of the independently built regressor to 1e-6
+    relative (the issue's bound; measured ~1e-13 and ~1e-11). The Lemma 2
+    variance comes from the inverse Cholesky factor of the normal equations,
+    accurate to ~cond(A)^2 eps <= 2.5e-5 for the equilibrated condition numbers
+    here (up to ~5e5), so it is held to 1e-4 (a std is meaningful to ~10 %)."""
     rng = np.random.default_rng(11)
     F, N = 3, 1200
     u = multisine(N, rms=1.44, rng=rng)
     y = simulate_resonant(u, F, noise_std=1e-3, rng=rng)
     est = LRMBeyondNyquist().fit(u, y, F=F)
     U, Y = np.fft.fft(u), np.fft.fft(y)
-    for k in range(0, N // F // 2 + 1, 9):
+    for k in range(N // F // 2 + 1):
         A, b = _independent_regressor(U, Y, k, F, 18, 4, 4, 7)
         scale = np.linalg.norm(A, axis=0)
         Q, R = np.linalg.qr(A / scale)
         theta = np.linalg.solve(R, Q.conj().T @ b) / scale
-        got = est.local_fit_.system[k]
-        np.testing.assert_allclose(got, F * theta[:F], rtol=1e-6)
+        R_inv = np.linalg.inv(R)
+        gram_inv_diag = np.sum(np.abs(R_inv) ** 2, axis=1) / scale**2
+        noise_var = np.sum(np.abs(b - A @ theta) ** 2) / (A.shape[0] - A.shape[1])
+        np.testing.assert_allclose(est.local_fit_.system[k], F * theta[:F],
+                                   rtol=1e-6)
+        np.testing.assert_allclose(est.local_fit_.noise_var[k], noise_var,
+                                   rtol=1e-6)
+        np.testing.assert_allclose(est.local_fit_.system_var[k],
+                                   F**2 * gram_inv_diag[:F] * noise_var, rtol=1e-4)
 
 
 def test_lpm_is_lrm_with_zero_denominator():
