@@ -1,9 +1,8 @@
-"""Shared fixtures: small systems and data built exactly in the local model class."""
+"""Shared test helpers: a lightly damped two-mode plant, its exact FRF, its output."""
 
 from __future__ import annotations
 
 import numpy as np
-import pytest
 from scipy.signal import cont2discrete, lfilter
 
 
@@ -29,11 +28,6 @@ def frf_of(b, a, n_samples: int) -> np.ndarray:
     """Exact FRF of lfilter(b, a) at z = exp(j 2 pi k / N), k = 0..N//2."""
     z = np.exp(-2j * np.pi * np.arange(n_samples // 2 + 1) / n_samples)
     return np.polyval(b[::-1], z) / np.polyval(a[::-1], z)
-
-
-@pytest.fixture
-def resonant():
-    return resonant_system()
 
 
 def simulate_resonant(u, F, noise_std, rng, b=None, a=None):

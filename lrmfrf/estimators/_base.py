@@ -91,14 +91,20 @@ class FRFEstimatorMixin:
     def score(self, u_h, y_l) -> float:
         """R^2 of the predicted slow output against ``y_l`` (all experiments).
 
+        ``1 - sum (y_l - predict(u_h))^2 / sum (y_l - mean(y_l))^2`` over all
+        samples of all experiments; the transient in ``y_l`` is not predicted.
+
         Parameters
         ----------
         u_h : array-like of shape (N,) or (P, N)
+            Fast input(s) of the training length.
         y_l : array-like of shape (M,) or (P, M)
+            Measured slow output(s).
 
         Returns
         -------
         float
+            1 for a perfect prediction; can be negative.
         """
         self._check_fitted()
         u, y, _ = check_records(u_h, y_l, self.downsampling_factor_)

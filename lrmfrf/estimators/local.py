@@ -270,7 +270,11 @@ class LRMBeyondNyquist(_LocalModelEstimator):
     >>> u = multisine(1200, rng=0)
     >>> y = lfilter([0.2, 0.1], [1.0, -0.5], u)[::3]
     >>> est = LRMBeyondNyquist(den_degree=2).fit(u, y, F=3)
-    >>> est.frf_.shape
+    >>> est.frf_.shape, est.noise_variance_.shape, bool(est.valid_.all())
+    ((601,), (201,), True)
+    >>> bool(est.score(u, y) > 0.999)  # R^2 of the predicted slow output
+    True
+    >>> est.to_frd().omega.shape  # control.FrequencyResponseData, rad/s
     (601,)
     """
 
