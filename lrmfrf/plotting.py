@@ -100,13 +100,17 @@ def plot_frf(
     xscale: str = "log",
     max_points: int | None = None,
     title: str | None = None,
+    phase: str = "unwrap",
+    legend: str = "outside",
+    freq_range: tuple[float, float] | None = None,
 ):
     """Bode plot (magnitude in dB, phase in degrees) with uncertainty bands.
 
     Parameters
     ----------
     *frfs : fitted estimators, control.FrequencyResponseData or tuples
-        FRFs to draw (see :func:`frf_curve`); invalid bins leave gaps.
+        FRFs to draw (see :func:`frf_curve`); invalid bins leave gaps. The
+        first is drawn on top, with the most opaque band.
     true : control LTI system, FRD, tuple or complex ndarray, optional
         Reference drawn as a black dashed line. A python-control system is
         evaluated on a dense grid (at ``z = exp(j 2 pi f Ts)`` if discrete); an
@@ -120,9 +124,10 @@ def plot_frf(
     labels : sequence of str, optional
         Legend labels, one per FRF; default the class names.
     slow_nyquist : float, bool or None, default=None
-        Frequency in Hz of the dashed vertical line marking the slow Nyquist
-        frequency ``1/(2 F Ts)``. ``None`` takes it from the first FRF that
-        knows it; ``False`` draws no line.
+        Frequency in Hz of the dotted vertical line marking the slow Nyquist
+        frequency ``1/(2 F Ts)``; the band above it is lightly shaded.
+        ``None`` takes it from the first FRF that knows it; ``False`` draws
+        no line.
     xscale : {"log", "linear"}, default="log"
         Frequency axis scale; ``"log"`` leaves out 0 Hz.
     max_points : int, optional
@@ -130,6 +135,19 @@ def plot_frf(
         very long records.
     title : str, optional
         Figure title.
+    phase : {"unwrap", "wrap"}, default="unwrap"
+        ``"unwrap"``: a continuous phase. The reference (``true`` if given,
+        else the first FRF) is unwrapped along frequency and every other
+        curve is drawn within +/-180 degrees of it, so estimates and truth are
+        compared without 360-degree jumps. ``"wrap"``: each phase in
+        (-180, 180], breaks where it wraps.
+    legend : {"outside", "inside", "none"}, default="outside"
+        ``"outside"`` puts the legend to the right of the magnitude axes,
+        where it cannot cover data; ``"inside"`` lets matplotlib choose a
+        place in the axes.
+    freq_range : (float, float), optional
+        Draw only this band of frequencies in Hz (a zoom, e.g. on one
+        resonance); the axis limits then fit the data in the band.
 
     Returns
     -------
@@ -154,27 +172,51 @@ def plot_frf(
     std_band = _check_std_band(std_band)
     if xscale not in ("log", "linear"):
         raise ValueError(f"xscale must be 'log' or 'linear'. Got {xscale!r}.")
+    if phase not in ("unwrap", "wrap"):
+        raise ValueError(f"phase must be 'unwrap' or 'wrap'. Got {phase!r}.")
+    if legend not in ("outside", "inside", "none"):
+        raise ValueError(
+            f"legend must be 'outside', 'inside' or 'none'. Got {legend!r}."
+        )
+    window = _check_freq_range(freq_range)
     fig, axes = _bode_axes(ax)
     mag_ax, phase_ax = axes
-    floors = []
+    reference = None if true is None else _true_curve(true, curves[0], window)
+    reference_phase = None
+    if phase == "unwrap":
+        basis = reference if reference is not None else curves[0]
+        # Unwrapped over all frequencies, so a zoom shows the same phase values.
+        reference_phase = _reference_phase(basis, xscale)
+    floors, phases = [], []
+    n_curves = len(curves)
     for index, (curve, label) in enumerate(zip(curves, labels, strict=True)):
-        color = f"C{index}"
-        keep = _plot_indices(curve.frequencies, xscale, max_points)
-        floors.append(
-            _draw_curve(axes, curve, keep, label, color, std_band)
+        keep = _plot_indices(curve.frequencies, xscale, max_points, window)
+        floor, shown = _draw_curve(
+            axes, curve, keep, label, f"C{index}", std_band,
+            reference_phase=reference_phase,
+            zorder=2.0 + (n_curves - index) / (n_curves + 1),
+            band_alpha=0.3 if index == 0 else 0.15,
         )
-    if true is not None:
-        reference = _true_curve(true, curves[0])
-        keep = _plot_indices(reference.frequencies, xscale, None)
-        _draw_curve(axes, reference, keep, "true", "k", 0.0, linestyle="--")
+        floors.append(floor)
+        phases.append(shown)
+    if reference is not None:
+        keep = _plot_indices(reference.frequencies, xscale, None, window)
+        _, shown = _draw_curve(axes, reference, keep, "true", "k", 0.0,
+                               linestyle="--", reference_phase=reference_phase,
+                               zorder=3.5)
+        phases.append(shown)
+    low, high = _frequency_span(curves, reference, xscale)
+    if window is not None:
+        low, high = window
     nyquist = _resolve_slow_nyquist(slow_nyquist, curves)
     if nyquist is not None:
         for axis in axes:
-            axis.axvline(nyquist, color="0.3", linestyle=":", linewidth=1.2)
-        mag_ax.axvline(
-            nyquist, color="0.3", linestyle=":", linewidth=1.2,
-            label=f"slow Nyquist {nyquist:.4g} Hz",
-        )
+            if high > nyquist:
+                axis.axvspan(nyquist, high, color="0.5", alpha=0.08, linewidth=0,
+                             zorder=0)
+            axis.axvline(nyquist, color="0.3", linestyle=":", linewidth=1.2,
+                         label=f"slow Nyquist {nyquist:.4g} Hz"
+                         if axis is mag_ax else None)
     if std_band > 0 and any(c.std is not None for c in curves):
         from matplotlib.patches import Patch
 
@@ -189,16 +231,25 @@ def plot_frf(
         axis.set_xscale(xscale)
         axis.grid(True, which="major", alpha=0.4)
         axis.grid(True, which="minor", alpha=0.15)
-    phase_ax.set_ylim(-200, 200)
-    phase_ax.set_yticks([-180, -90, 0, 90, 180])
+    if high > low:
+        phase_ax.set_xlim(low, high)  # axes share x when created here
+        mag_ax.set_xlim(low, high)
+    _phase_limits(phase_ax, phases, reference_phase, window,
+                  wrapped=phase == "wrap")
     mag_ax.set_ylabel("Magnitude [dB]")
     phase_ax.set_ylabel("Phase [deg]")
     phase_ax.set_xlabel("Frequency [Hz]")
-    handles, names = mag_ax.get_legend_handles_labels()
-    if band_key is not None:
-        handles.append(band_key)
-        names.append(band_key.get_label())
-    mag_ax.legend(handles, names, loc="best", fontsize="small")
+    if legend != "none":
+        handles, names = mag_ax.get_legend_handles_labels()
+        if band_key is not None:
+            handles.append(band_key)
+            names.append(band_key.get_label())
+        if legend == "outside":
+            mag_ax.legend(handles, names, loc="upper left",
+                          bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0,
+                          fontsize="small")
+        else:
+            mag_ax.legend(handles, names, loc="best", fontsize="small")
     if title:
         mag_ax.set_title(title)
     return fig, axes
@@ -213,6 +264,8 @@ def plot_error(
     ax=None,
     slow_nyquist: float | bool | None = None,
     xscale: str = "log",
+    yscale: str | None = None,
+    units: str | None = None,
 ):
     """Plot the cumulative or relative error of FRF estimates.
 
@@ -240,6 +293,12 @@ def plot_error(
     slow_nyquist : float, bool or None, default=None
         As in :func:`plot_frf`.
     xscale : {"log", "linear"}, default="log"
+    yscale : {"linear", "log"}, optional
+        Error axis scale; default linear for ``"cumulative"`` (as in the
+        paper) and log for ``"relative"``.
+    units : str, optional
+        Units of ``G`` for the cumulative-error axis label, e.g. ``"m/N"``;
+        default "units of G".
 
     Returns
     -------
@@ -254,6 +313,10 @@ def plot_error(
         raise ValueError("plot_error needs at least one estimate. Pass an estimator.")
     if xscale not in ("log", "linear"):
         raise ValueError(f"xscale must be 'log' or 'linear'. Got {xscale!r}.")
+    if yscale is None:
+        yscale = "log" if kind == "relative" else "linear"
+    if yscale not in ("log", "linear"):
+        raise ValueError(f"yscale must be 'log' or 'linear'. Got {yscale!r}.")
     from . import metrics
 
     labels = _check_labels(labels, estimates)
@@ -280,11 +343,11 @@ def plot_error(
         ax.axvline(nyquist, color="0.3", linestyle=":", linewidth=1.2,
                    label=f"slow Nyquist {nyquist:.4g} Hz")
     ax.set_xscale(xscale)
+    ax.set_yscale(yscale)
     if kind == "relative":
-        ax.set_yscale("log")
-        ax.set_ylabel("Relative error |G - Ĝ| / |G|")
+        ax.set_ylabel("Relative error |G - Ĝ| / |G| [-]")
     else:
-        ax.set_ylabel("Cumulative error (1/N) Σ |G - Ĝ|")
+        ax.set_ylabel(f"Cumulative error (1/N) Σ |G - Ĝ| [{units or 'units of G'}]")
     ax.set_xlabel("Frequency [Hz]")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(loc="best", fontsize="small")
@@ -307,7 +370,7 @@ def _pyplot():
 def _bode_axes(ax):
     if ax is None:
         plt = _pyplot()
-        fig, axes = plt.subplots(2, 1, sharex=True, figsize=(8, 6),
+        fig, axes = plt.subplots(2, 1, sharex=True, figsize=(9.5, 6),
                                  layout="constrained")
         return fig, np.asarray(axes)
     try:
@@ -434,11 +497,13 @@ def _evaluate_lti(system, frequencies: np.ndarray, sample_time) -> np.ndarray:
     return np.asarray(system(points), dtype=complex).reshape(frequencies.shape)
 
 
-def _true_curve(true, first: FRFCurve) -> FRFCurve:
+def _true_curve(true, first: FRFCurve, window=None) -> FRFCurve:
     if _is_lti(true):
         grid = first.frequencies
         positive = grid[grid > 0]
-        if positive.size:
+        if window is not None:
+            grid = np.union1d(grid, np.linspace(window[0], window[1], 2000))
+        elif positive.size:
             dense = np.geomspace(positive.min(), grid.max(), 2000)
             grid = np.union1d(grid, dense)
         return FRFCurve(grid, _evaluate_lti(true, grid, first.sample_time), None,
@@ -482,10 +547,13 @@ def _resolve_slow_nyquist(slow_nyquist, curves) -> float | None:
     return value
 
 
-def _plot_indices(frequencies, xscale: str, max_points) -> np.ndarray:
+def _plot_indices(frequencies, xscale: str, max_points, window=None) -> np.ndarray:
     index = np.arange(frequencies.size)
     if xscale == "log":
         index = index[frequencies > 0]
+    if window is not None:
+        index = index[(frequencies[index] >= window[0])
+                      & (frequencies[index] <= window[1])]
     if max_points is not None and index.size > max_points:
         if xscale == "log":
             picks = np.geomspace(1, index.size, int(max_points)) - 1
@@ -495,8 +563,27 @@ def _plot_indices(frequencies, xscale: str, max_points) -> np.ndarray:
     return index
 
 
-def _draw_curve(axes, curve: FRFCurve, keep, label, color, std_band, linestyle="-"):
-    """Draw one curve and its bands; return a floor for the magnitude axis."""
+def _check_freq_range(freq_range):
+    if freq_range is None:
+        return None
+    try:
+        low, high = (float(v) for v in freq_range)
+    except (TypeError, ValueError):
+        low = high = np.nan
+    if not (np.isfinite(low) and np.isfinite(high) and 0 <= low < high):
+        raise ValueError(
+            f"freq_range must be two frequencies in Hz, 0 <= low < high. Got "
+            f"{freq_range!r}."
+        )
+    return low, high
+
+
+def _draw_curve(axes, curve: FRFCurve, keep, label, color, std_band,
+                linestyle="-", reference_phase=None, zorder=2.0, band_alpha=0.25):
+    """Draw one curve and its bands.
+
+    Returns a floor for the magnitude axis and the phase as drawn (degrees).
+    """
     mag_ax, phase_ax = axes
     freq = curve.frequencies[keep]
     frf = curve.frf[keep]
@@ -504,16 +591,19 @@ def _draw_curve(axes, curve: FRFCurve, keep, label, color, std_band, linestyle="
     with np.errstate(divide="ignore", invalid="ignore"):
         mag_db = 20 * np.log10(magnitude)
     phase = np.angle(frf, deg=True)
+    if reference_phase is not None:
+        phase = _phase_near(freq, phase, *reference_phase)
+    phase[~np.isfinite(frf)] = np.nan
     mag_ax.plot(freq, mag_db, color=color, linestyle=linestyle, linewidth=1.0,
-                label=label)
+                label=label, zorder=zorder)
     phase_ax.plot(*_break_wraps(freq, phase), color=color, linestyle=linestyle,
-                  linewidth=1.0)
+                  linewidth=1.0, zorder=zorder)
     finite = mag_db[np.isfinite(mag_db)]
     if finite.size == 0:
-        return np.nan
+        return np.nan, phase
     floor = float(finite.min()) - 10.0
     if curve.std is None or std_band == 0:
-        return floor
+        return floor, phase
     spread = std_band * curve.std[keep]
     with np.errstate(divide="ignore", invalid="ignore"):
         upper = 20 * np.log10(magnitude + spread)
@@ -523,16 +613,100 @@ def _draw_curve(axes, curve: FRFCurve, keep, label, color, std_band, linestyle="
         ratio = np.clip(spread / magnitude, 0.0, 1.0)
         half_width = np.where(ratio < 1, np.degrees(np.arcsin(ratio)), 180.0)
     band = np.isfinite(upper) & np.isfinite(spread)
-    mag_ax.fill_between(freq, lower, upper, where=band, color=color, alpha=0.25,
-                        linewidth=0)
+    mag_ax.fill_between(freq, lower, upper, where=band, color=color,
+                        alpha=band_alpha, linewidth=0, zorder=zorder - 1.5)
     phase_band = band.copy()
     phase_band[np.flatnonzero(np.abs(np.diff(phase)) > 180.0) + 1] = False
     phase_ax.fill_between(freq, phase - half_width, phase + half_width,
-                          where=phase_band, color=color, alpha=0.25, linewidth=0)
-    return floor
+                          where=phase_band, color=color, alpha=band_alpha,
+                          linewidth=0, zorder=zorder - 1.5)
+    return floor, phase
+
+
+def _reference_phase(curve: FRFCurve, xscale: str):
+    """Unwrapped phase (degrees) of ``curve`` on its reliable bins.
+
+    Reliable: finite, and (when a std is known) ``std < 0.3 |G|``, a phase
+    uncertainty below about 17 degrees. Unwrapping only across reliable bins
+    keeps noise from adding spurious multiples of 360 degrees. Returns
+    ``(frequencies, phase)``, possibly empty.
+    """
+    keep = _plot_indices(curve.frequencies, xscale, None)
+    frf = curve.frf[keep]
+    reliable = np.isfinite(frf) & (np.abs(frf) > 0)
+    if curve.std is not None:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            reliable &= curve.std[keep] < 0.3 * np.abs(frf)
+    if not reliable.any():  # nothing trustworthy: unwrap what there is
+        reliable = np.isfinite(frf)
+    freq = curve.frequencies[keep][reliable]
+    unwrapped = np.degrees(np.unwrap(np.angle(frf[reliable])))
+    return freq, unwrapped
+
+
+def _phase_near(freq, phase, ref_freq, ref_phase):
+    """Shift each phase by a multiple of 360 deg to within 180 deg of a reference.
+
+    The reference (unwrapped, on ``ref_freq``) is interpolated linearly at
+    ``freq``; on the reference's own bins the result is the reference itself.
+    """
+    if ref_freq.size == 0:
+        return phase
+    target = np.interp(freq, ref_freq, ref_phase)
+    return target + (phase - target + 180.0) % 360.0 - 180.0
+
+
+def _phase_limits(phase_ax, phases, reference_phase, window, *,
+                  wrapped: bool) -> None:
+    """Phase axis limits and ticks (multiples of 90 degrees).
+
+    Unwrapped: the reference's range plus 45 degrees on each side (estimates
+    further away than that are clipped: they are far off anyway); without a
+    reference, the range of the drawn curves.
+    """
+    from matplotlib.ticker import MultipleLocator
+
+    if wrapped:
+        phase_ax.set_ylim(-200, 200)
+        phase_ax.yaxis.set_major_locator(MultipleLocator(90))
+        return
+    if reference_phase is not None and reference_phase[1].size:
+        ref_freq, values = reference_phase
+        if window is not None:
+            inside = (ref_freq >= window[0]) & (ref_freq <= window[1])
+            values = values[inside] if inside.any() else np.interp(
+                np.asarray(window), ref_freq, values)
+        margin = 45.0
+    else:
+        values = np.concatenate([np.ravel(p) for p in phases]) if phases else []
+        margin = 0.0
+    values = np.asarray(values, dtype=float)
+    values = values[np.isfinite(values)]
+    if values.size == 0:
+        phase_ax.set_ylim(-200, 200)
+        return
+    low = 90.0 * np.floor((values.min() - margin) / 90.0) - 10.0
+    high = 90.0 * np.ceil((values.max() + margin) / 90.0) + 10.0
+    phase_ax.set_ylim(low, high)
+    step = 90.0 if high - low <= 760 else 180.0 * np.ceil((high - low) / 1440.0)
+    phase_ax.yaxis.set_major_locator(MultipleLocator(step))
+
+
+def _frequency_span(curves, reference, xscale: str) -> tuple[float, float]:
+    """Smallest and largest drawn frequency (positive ones on a log axis)."""
+    grids = [c.frequencies for c in curves]
+    if reference is not None:
+        grids.append(reference.frequencies)
+    values = np.concatenate([np.asarray(g, dtype=float) for g in grids])
+    values = values[np.isfinite(values)]
+    if xscale == "log":
+        values = values[values > 0]
+    if values.size == 0:
+        return 0.0, 0.0
+    return float(values.min()), float(values.max())
 
 
 def _break_wraps(freq: np.ndarray, phase: np.ndarray):
-    """Insert NaN where the wrapped phase jumps by more than 180 degrees."""
+    """Insert NaN where the phase jumps by more than 180 degrees."""
     jumps = np.flatnonzero(np.abs(np.diff(phase)) > 180.0) + 1
     return np.insert(freq, jumps, np.nan), np.insert(phase, jumps, np.nan)

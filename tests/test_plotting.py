@@ -229,3 +229,140 @@ def test_plot_error_bad_arguments(fitted):
         plot_error(np.ones(3), np.ones(3))
     with pytest.raises(ValueError, match="Pass the true system"):
         plot_error(np.ones(3), fitted)
+
+
+# --------------------------------------------------------------------------
+# Readability: continuous phase, legend placement, slow-Nyquist band, order
+# --------------------------------------------------------------------------
+
+TS = 0.5e-3
+
+
+def _delay(f, samples=3):
+    """A pure delay of ``samples`` fast samples: phase -360 f Ts samples deg."""
+    return np.exp(-2j * np.pi * f * TS * samples)
+
+
+def _phase_line(axis):
+    line = axis.get_lines()[0]
+    x, y = np.asarray(line.get_xdata(), float), np.asarray(line.get_ydata(), float)
+    keep = np.isfinite(x)  # NaN separators where the phase breaks
+    return x[keep], y[keep]
+
+
+def test_phase_is_unwrapped_along_frequency():
+    f = np.linspace(1.0, 999.0, 500)
+    fig, axes = plot_frf((f, _delay(f)), slow_nyquist=False)
+    x, y = _phase_line(axes[1])
+    np.testing.assert_allclose(x, f)
+    np.testing.assert_allclose(y, -360.0 * f * TS * 3, atol=1e-9)  # to -539 deg
+    low, high = axes[1].get_ylim()
+    assert low <= y.min() and high >= y.max()
+
+
+def test_wrap_option_keeps_the_principal_value():
+    f = np.linspace(1.0, 999.0, 500)
+    fig, axes = plot_frf((f, _delay(f)), slow_nyquist=False, phase="wrap")
+    y = np.asarray(axes[1].get_lines()[0].get_ydata(), float)
+    assert np.nanmax(y) <= 180 and np.nanmin(y) > -180
+    assert np.isnan(y).sum() == 1  # one break, where -180 wraps to +180
+    assert axes[1].get_ylim() == (-200, 200)
+
+
+def test_estimates_are_drawn_within_180_degrees_of_the_truth():
+    f = np.linspace(1.0, 999.0, 400)
+    G = _delay(f)
+    offset = np.where(np.arange(f.size) % 2, 170.0, -170.0)
+    estimate = G * np.exp(1j * np.radians(offset))
+    fig, axes = plot_frf((f, estimate), true=(f, G), slow_nyquist=False)
+    x, y = _phase_line(axes[1])
+    np.testing.assert_allclose(y, -360.0 * f * TS * 3 + offset, atol=1e-9)
+
+
+def test_noisy_bins_do_not_shift_the_unwrapped_phase():
+    """Bins with std > |G| carry random phases; unwrapping through them would
+    add random multiples of 360 degrees to everything after them."""
+    rng = np.random.default_rng(0)
+    f = np.linspace(1.0, 999.0, 600)
+    G = _delay(f).copy()
+    std = np.full(f.size, 0.01)
+    noisy = (f > 300) & (f < 500)
+    G[noisy] = np.exp(2j * np.pi * rng.random(noisy.sum()))
+    std[noisy] = 3.0
+    fig, axes = plot_frf((f, G, std), slow_nyquist=False)
+    x, y = _phase_line(axes[1])
+    exact = -360.0 * f * TS * 3
+    np.testing.assert_allclose(y[~noisy], exact[~noisy], atol=1e-9)
+    assert np.all(np.abs(y[noisy] - exact[noisy]) <= 180.0 + 1e-9)
+
+
+def test_legend_outside_does_not_cover_the_axes(fitted):
+    fig, axes = plot_frf(fitted, labels=["LRM"])
+    fig.canvas.draw()
+    legend = axes[0].get_legend().get_window_extent()
+    for axis in axes:
+        assert legend.x0 >= axis.get_window_extent().x1
+    fig, axes = plot_frf(fitted, legend="inside")
+    fig.canvas.draw()
+    box = axes[0].get_window_extent()
+    assert axes[0].get_legend().get_window_extent().x1 <= box.x1
+    fig, axes = plot_frf(fitted, legend="none")
+    assert axes[0].get_legend() is None
+
+
+def test_band_above_the_slow_nyquist_frequency_is_shaded(fitted):
+    fig, axes = plot_frf(fitted)
+    nyquist = 1 / (2 * 3 * TS)
+    for axis in axes:
+        spans = [p for p in axis.patches if hasattr(p, "get_x")]
+        assert len(spans) == 1
+        assert spans[0].get_x() == pytest.approx(nyquist)
+        assert spans[0].get_x() + spans[0].get_width() == pytest.approx(
+            fitted.frequencies_[-1])
+        assert axis.get_xlim() == pytest.approx(
+            (fitted.frequencies_[1], fitted.frequencies_[-1]))
+
+
+def test_first_frf_is_drawn_on_top(fitted):
+    f = fitted.frequencies_
+    fig, axes = plot_frf(fitted, (f, fitted.frf_ * 1.1), labels=["a", "b"])
+    first, second = axes[0].get_lines()[:2]
+    assert first.get_zorder() > second.get_zorder()
+
+
+def test_bad_readability_arguments(fitted):
+    with pytest.raises(ValueError, match="phase must be 'unwrap' or 'wrap'"):
+        plot_frf(fitted, phase="deg")
+    with pytest.raises(ValueError, match="legend must be 'outside', 'inside'"):
+        plot_frf(fitted, legend="top")
+    with pytest.raises(ValueError, match="yscale must be 'log' or 'linear'"):
+        plot_error(np.ones(3), np.ones(3), frequencies=np.arange(3.0),
+                   yscale="symlog")
+
+
+def test_plot_error_scales_and_units():
+    f = np.linspace(0, 100, 11)
+    G = np.full(11, 2.0 + 0j)
+    fig, ax = plot_error(G, G * 1.1, frequencies=f, units="m/N",
+                         slow_nyquist=False)
+    assert ax.get_yscale() == "linear"
+    assert ax.get_ylabel().endswith("[m/N]")
+    fig, ax = plot_error(G, G * 1.1, frequencies=f, kind="relative",
+                         slow_nyquist=False)
+    assert ax.get_yscale() == "log" and ax.get_ylabel().endswith("[-]")
+
+
+def test_freq_range_zooms_and_keeps_the_global_phase():
+    f = np.linspace(1.0, 999.0, 999)
+    G = _delay(f)
+    fig, axes = plot_frf((f, G), true=(f, G), slow_nyquist=False,
+                         xscale="linear", freq_range=(400.0, 500.0))
+    x, y = _phase_line(axes[1])
+    assert x.min() >= 400.0 and x.max() <= 500.0
+    # the same values as in the full plot: unwrapped from 1 Hz, not from 400 Hz
+    np.testing.assert_allclose(y, -360.0 * x * TS * 3, atol=1e-9)
+    assert axes[0].get_xlim() == (400.0, 500.0)
+    low, high = axes[1].get_ylim()
+    assert low >= -360 * 500 * TS * 3 - 45 - 100 and high <= -360 * 400 * TS * 3 + 145
+    with pytest.raises(ValueError, match="freq_range must be two frequencies"):
+        plot_frf((f, G), freq_range=(500.0, 400.0))
