@@ -6,13 +6,17 @@ the output folder a Bode plot per system (with a +/-2 std band and the slow
 Nyquist frequency) and a CSV of the FRFs. It never overwrites a file it did not
 write: the files it writes are listed with their SHA-256 in
 ``lrmfrf-demo-manifest.json``, and a later run replaces only files that are
-listed there and unchanged (or any file with ``overwrite=True``).
+listed there and unchanged (or any file with ``overwrite=True``). Every target
+is checked before any work is done, so a refused run writes nothing. Without
+matplotlib the CSVs are written and the PNGs skipped, with a note.
 """
 
 from __future__ import annotations
 
 import io
 import json
+import logging
+import numbers
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -30,8 +34,14 @@ from .plants import wafer_stage
 
 __all__ = ["DemoResult", "run_demo", "format_table"]
 
+logger = logging.getLogger(__name__)
+
 MANIFEST = "lrmfrf-demo-manifest.json"
 SYSTEMS = ("G_y4", "G_z")
+_WRITER = "lrmfrf demo"
+_PLOT_HINT = (
+    'Bode PNGs not drawn: matplotlib is missing (pip install "lrmfrf[plot]")'
+)
 
 
 @dataclass
@@ -47,11 +57,14 @@ class DemoResult:
         :func:`lrmfrf.paper.compare_methods`.
     files : list of Path
         Files written.
+    notes : list of str
+        What was skipped and why (e.g. the PNGs without matplotlib).
     """
 
     table: str
     results: dict
     files: list = field(default_factory=list)
+    notes: list = field(default_factory=list)
 
 
 def format_table(results: dict) -> str:
@@ -89,25 +102,49 @@ def run_demo(
     out_dir : str or Path, default="lrmfrf-demo"
         Created if missing.
     seed : int, default=0
-        Seed of the multisine phases and the noise.
+        Seed (>= 0) of the multisine phases and the noise.
     snr_db : float, default=45
         Output signal-to-noise ratio in dB.
     overwrite : bool, default=False
         Replace existing files even if this demo did not write them.
     plot : bool, default=True
-        Write the Bode PNGs (needs matplotlib).
+        Write the Bode PNGs (skipped, with a note in ``notes``, when
+        matplotlib is not installed).
 
     Returns
     -------
     DemoResult
+
+    Raises
+    ------
+    ValueError
+        For a bad ``seed`` or ``snr_db``, or an ``out_dir`` that is a file.
+    FileExistsError
+        If a target file exists that this demo did not write (or changed
+        since) and ``overwrite`` is False; nothing is written then.
     """
-    if not np.isfinite(snr_db):
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
+        raise ValueError(f"seed must be an integer >= 0. Got {seed!r}.")
+    if not (isinstance(snr_db, numbers.Real) and np.isfinite(snr_db)):
         raise ValueError(f"snr_db must be a finite number of dB. Got {snr_db!r}.")
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise ValueError(f"{out} exists and is not a folder. Choose another --out.")
+    notes = []
+    if plot and not _have_matplotlib():
+        plot = False
+        notes.append(_PLOT_HINT)
+        logger.warning(_PLOT_HINT)
+    targets = {
+        name: (out / f"frf_{name}.csv", out / f"bode_{name}.png" if plot else None)
+        for name in SYSTEMS
+    }
+    manifest = _read_manifest(out, overwrite)
+    for csv_path, png_path in targets.values():
+        for path in (csv_path, png_path):
+            if path is not None:
+                _check_target(path, manifest, overwrite)
     out.mkdir(parents=True, exist_ok=True)
-    manifest = _read_manifest(out)
     stage = wafer_stage()
     rng = np.random.default_rng(seed)
     results, files = {}, []
@@ -118,15 +155,25 @@ def run_demo(
         results[name] = compare_methods(
             experiment, estimators, resonances=stage.resonance_frequencies_hz
         )
-        csv_path = out / f"frf_{name}.csv"
+        csv_path, png_path = targets[name]
         _write(csv_path, _frf_csv(experiment, estimators), manifest, overwrite)
         files.append(csv_path)
-        if plot:
-            png_path = out / f"bode_{name}.png"
+        manifest[csv_path.name] = file_sha256(csv_path)
+        if png_path is not None:
             _write(png_path, _bode_png(system, estimators, name), manifest, overwrite)
             files.append(png_path)
-    _write_manifest(out, manifest, files)
-    return DemoResult(table=format_table(results), results=results, files=files)
+            manifest[png_path.name] = file_sha256(png_path)
+        _write_manifest(out, manifest)
+    return DemoResult(table=format_table(results), results=results, files=files,
+                      notes=notes)
+
+
+def _have_matplotlib() -> bool:
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 def _frf_csv(experiment, estimators) -> bytes:
@@ -171,14 +218,46 @@ def _bode_png(system, estimators, name: str) -> bytes:
     return buffer.getvalue()
 
 
-def _read_manifest(out: Path) -> dict:
+def _read_manifest(out: Path, overwrite: bool) -> dict:
+    """Files this demo wrote in ``out``, ``{name: sha256}``.
+
+    A manifest file that this demo did not write (not a JSON object with
+    ``"written_by": "lrmfrf demo"``) is a user's file: refused unless
+    ``overwrite``.
+    """
     path = out / MANIFEST
     if not path.exists():
         return {}
     try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
+        content = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError):
+        content = None
+    if (
+        isinstance(content, dict)
+        and content.get("written_by") == _WRITER
+        and isinstance(content.get("files"), dict)
+    ):
+        return {str(k): str(v) for k, v in content["files"].items()}
+    if overwrite:
         return {}
+    raise FileExistsError(
+        f"{path}: exists and was not written by lrmfrf demo. Choose another --out "
+        "folder, or pass --force (overwrite=True) to replace it."
+    )
+
+
+def _check_target(path: Path, manifest: dict, overwrite: bool) -> None:
+    if not path.exists() or overwrite:
+        if path.is_dir():
+            raise ValueError(f"{path}: an output name is taken by a folder. "
+                             "Choose another --out.")
+        return
+    if manifest.get(path.name) != file_sha256(path):
+        raise FileExistsError(
+            f"{path}: exists already and was not written by lrmfrf demo (or was "
+            "changed since). Choose another --out folder, or pass --force "
+            "(overwrite=True) to replace it."
+        )
 
 
 def _write(path: Path, data: bytes, manifest: dict, overwrite: bool) -> None:
@@ -187,10 +266,8 @@ def _write(path: Path, data: bytes, manifest: dict, overwrite: bool) -> None:
         fh.write(data)
 
 
-def _write_manifest(out: Path, manifest: dict, files: list) -> None:
-    manifest = dict(manifest)
-    manifest.update({path.name: file_sha256(path) for path in files})
-    path = out / MANIFEST
-    ours = path.exists()  # the manifest is always the demo's own file
-    with atomic_open(path, overwrite=ours) as fh:
-        fh.write(json.dumps(manifest, indent=1, sort_keys=True).encode())
+def _write_manifest(out: Path, manifest: dict) -> None:
+    """Write the manifest (checked to be the demo's own by _read_manifest)."""
+    content = {"written_by": _WRITER, "files": dict(sorted(manifest.items()))}
+    with atomic_open(out / MANIFEST, overwrite=True) as fh:
+        fh.write(json.dumps(content, indent=1).encode())

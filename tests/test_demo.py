@@ -67,3 +67,52 @@ def test_demo_command_line(tmp_path):
     assert bad.returncode != 0
     assert len(bad.stderr.strip().splitlines()) == 1
     assert "Traceback" not in bad.stderr
+
+
+def test_refused_run_writes_nothing(tmp_path):
+    """Every target is checked first: a foreign file stops the run before any
+    file (or the manifest) is written."""
+    foreign = tmp_path / "frf_G_z.csv"
+    foreign.write_text("a user's own file\n")
+    with pytest.raises(FileExistsError, match="not written by lrmfrf demo"):
+        run_demo(tmp_path, seed=1, plot=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frf_G_z.csv"]
+    assert foreign.read_text() == "a user's own file\n"
+
+
+def test_changed_own_file_is_not_replaced(tmp_path):
+    run_demo(tmp_path, seed=1, plot=False)
+    edited = tmp_path / "frf_G_y4.csv"
+    edited.write_text(edited.read_text() + "# my note\n")
+    with pytest.raises(FileExistsError, match="or was changed since"):
+        run_demo(tmp_path, seed=1, plot=False)
+    assert edited.read_text().endswith("# my note\n")
+
+
+def test_foreign_manifest_is_a_users_file(tmp_path):
+    manifest = tmp_path / MANIFEST
+    for content in ('{"frf_G_z.csv": "0"}', "not json"):
+        manifest.write_text(content)
+        with pytest.raises(FileExistsError, match="not written by lrmfrf demo"):
+            run_demo(tmp_path, seed=1, plot=False)
+        assert manifest.read_text() == content
+    run_demo(tmp_path, seed=1, plot=False, overwrite=True)
+    assert '"written_by": "lrmfrf demo"' in manifest.read_text()
+
+
+def test_without_matplotlib_the_csvs_are_written_with_a_note(tmp_path, monkeypatch):
+    # python-control (imported already) needs matplotlib today; the demo does
+    # not, should control make it optional.
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    result = run_demo(tmp_path, seed=1)
+    assert sorted(p.name for p in result.files) == ["frf_G_y4.csv", "frf_G_z.csv"]
+    assert result.notes == [
+        'Bode PNGs not drawn: matplotlib is missing (pip install "lrmfrf[plot]")'
+    ]
+
+
+@pytest.mark.parametrize("seed", [-1, 1.5, True])
+def test_run_demo_rejects_bad_seed(tmp_path, seed):
+    with pytest.raises(ValueError, match="seed must be an integer >= 0"):
+        run_demo(tmp_path / "never", seed=seed)
+    assert not (tmp_path / "never").exists()
