@@ -439,8 +439,8 @@ def _write_plot(path: Path, estimator, data, args, write) -> str | None:
         ax=axes,
         labels=[f"{args.method.upper()} estimate"],
         max_points=PLOT_MAX_POINTS,
-        title=f"{data.path.name}: F={data.downsampling_factor}, "
-        f"Ts={args.sample_time:g} s, N={data.n_samples}",
+        title=f"{data.path.name}: F = {data.downsampling_factor}, "
+        f"Ts = {_seconds(args.sample_time)}, N = {data.n_samples}",
     )
     with atomic_open(path, **write) as fh:
         fig.savefig(fh, format="png", dpi=120)
@@ -598,6 +598,8 @@ def _run_demo(args, parser) -> int:
         print(result.table)
         for path in result.files:
             print(f"wrote {path}")
+        for note in getattr(result, "notes", ()):
+            print(f"{PROG}: warning: {note}", file=sys.stderr)
     return 0
 
 
@@ -679,6 +681,14 @@ def _run_diagnose(args, parser) -> int:
 # --------------------------------------------------------------------------
 # helpers
 # --------------------------------------------------------------------------
+
+
+def _seconds(value: float) -> str:
+    """A time in s, ms or us for titles: ``0.5e-3`` -> ``"0.5 ms"``."""
+    for scale, unit in ((1.0, "s"), (1e-3, "ms"), (1e-6, "us")):
+        if abs(value) >= 0.1 * scale:
+            return f"{value / scale:.4g} {unit}"
+    return f"{value:.4g} s"
 
 
 def _configure_logging(args) -> None:

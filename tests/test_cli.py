@@ -77,8 +77,9 @@ def records():
 # --------------------------------------------------------------------------
 
 #: name -> (arguments, expected status, fragments of the one stderr line).
-#: SUBPROCESS_CASES run as real subprocesses (the data errors users meet most);
-#: INPROCESS_CASES call main() in this process (same code path, much faster).
+#: SUBPROCESS_CASES run as real subprocesses (every data and safety case of the
+#: command-line issue); INPROCESS_CASES call main() in this process (usage
+#: errors and the rest: same code path, much faster).
 SUBPROCESS_CASES = {
     "missing file": (["fit", "nope.csv", *FIT, "--out", "o"], 1,
                      ["nope.csv", "no such file", "Check the path"]),
@@ -99,8 +100,6 @@ SUBPROCESS_CASES = {
     "non-numeric cell": (["fit", "text.csv", *FIT, "--out", "o"], 1,
                          ["text.csv", "non-numeric cell '0.3 V'", "line 8",
                           "Use numbers"]),
-}
-INPROCESS_CASES = {
     "unreadable mat": (["fit", "junk.mat", *FIT, "--out", "o"], 1,
                        ["junk.mat", "not a readable MATLAB file", "-v7"]),
     "mat text variable": (["fit", "text.mat", *FIT, "--out", "o"], 1,
@@ -108,6 +107,12 @@ INPROCESS_CASES = {
     "nan in output": (["fit", "nan_y.csv", *FIT, "--out", "o"], 1,
                       ["nan_y.csv", "output 'y' has 1 empty, NaN or inf",
                        "line 32", "fill in"]),
+    "output would replace input": (["fit", "frf.csv", *FIT, "--out", ".",
+                                    "--force"], 1,
+                                   ["frf.csv", "would replace the input file",
+                                    "Choose another output folder"]),
+}
+INPROCESS_CASES = {
     "bad local degrees": (["fit", "good.csv", *FIT, "--half-window", "3", "--out",
                            "o"], 1,
                           ["good.csv", "Too few equations", "Increase half_window"]),
@@ -115,10 +120,6 @@ INPROCESS_CASES = {
                       ["good.csv", "--out is a file"]),
     "existing output": (["fit", "good.csv", *FIT, "--out", "taken"], 1,
                         ["frf.csv", "exists already", "--force"]),
-    "output would replace input": (["fit", "frf.csv", *FIT, "--out", ".",
-                                    "--force"], 1,
-                                   ["frf.csv", "would replace the input file",
-                                    "Choose another output folder"]),
     "F is zero": (["fit", "good.csv", "--F", "0", "--sample-time", "1e-3", "--out",
                    "o"], 2, ["--F", "expected a positive integer, got '0'"]),
     "sample time missing": (["fit", "good.csv", "--F", "3", "--out", "o"], 2,
@@ -384,6 +385,53 @@ def test_demo_errors_are_one_line(monkeypatch, tmp_path, capsys):
 # --------------------------------------------------------------------------
 # progress
 # --------------------------------------------------------------------------
+
+
+def _read_all(fd) -> str:
+    chunks = []
+    while True:
+        try:
+            data = os.read(fd, 4096)
+        except OSError:  # EIO: the terminal's other end is closed
+            break
+        if not data:
+            break
+        chunks.append(data)
+    return b"".join(chunks).decode("utf-8", "replace")
+
+
+def test_cli_progress_bar_on_a_terminal_and_not_in_a_pipe(tmp_path):
+    """Over several files the CLI shows a tqdm bar when standard error is a
+    terminal (a real pseudo-terminal here) and none when it is a pipe."""
+    pytest.importorskip("tqdm")
+    if not hasattr(os, "openpty"):
+        pytest.skip("no pseudo-terminals on this platform")
+    args = ["fit", EXAMPLE_CSV, EXAMPLE_NPZ, *FIT, "--method", "sa", "--no-plot"]
+    env = dict(os.environ, PYTHONPATH=str(REPO), MPLBACKEND="Agg")
+    master, slave = os.openpty()
+    try:
+        import fcntl
+        import struct
+        import termios
+
+        # A terminal of 24 x 100 characters (a new pty has size 0 x 0, in
+        # which tqdm draws nothing).
+        fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 100, 0, 0))
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "lrmfrf.cli", *map(str, args), "--out",
+             str(tmp_path / "tty")],
+            stdout=subprocess.PIPE, stderr=slave, env=env, cwd=tmp_path,
+        )
+        os.close(slave)
+        terminal = _read_all(master)
+        proc.communicate(timeout=300)
+        assert proc.returncode == 0, terminal
+    finally:
+        os.close(master)
+    assert "files: 100%" in terminal and "2/2" in terminal, terminal
+    piped = run_cli(*args, "--out", tmp_path / "pipe", cwd=tmp_path)
+    assert piped.returncode == 0, piped.stderr
+    assert piped.stderr == ""
 
 
 class _Stream:
