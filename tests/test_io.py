@@ -125,6 +125,23 @@ def test_csv_chunk_boundaries_do_not_change_result(tmp_path, monkeypatch):
         read_measurement(bad, F=3)
 
 
+def test_csv_columns_are_allocated_once_and_grow_if_needed(tmp_path, monkeypatch):
+    """The columns are sized from a line count; old-Mac files (CR only) have no
+    newline to count and take the growth path: same records either way."""
+    rng = np.random.default_rng(14)
+    u, y = _records(rng, M=50, F=3)
+    path = write_csv(tmp_path / "d.csv", {"u": u, "y": fast_column(y, 3)})
+    assert lio._count_lines(path) == 1 + 1 + 150  # header, rows, final newline
+    mac = tmp_path / "mac.csv"
+    mac.write_bytes(path.read_bytes().replace(b"\n", b"\r"))
+    assert lio._count_lines(mac) == 1
+    monkeypatch.setattr(lio, "CSV_CHUNK_ROWS", 16)
+    for source in (path, mac):
+        data = read_measurement(source, F=3)
+        np.testing.assert_array_equal(data.u_h, u)
+        np.testing.assert_array_equal(data.y_l, y)
+
+
 @settings(max_examples=25, deadline=None)
 @given(
     F=st.integers(1, 5),
