@@ -28,6 +28,8 @@ import control
 import numpy as np
 import scipy.linalg
 import scipy.signal
+import scipy.sparse
+import scipy.sparse.csgraph
 
 from ._validation import check_downsampling_factor, check_siso_system
 
@@ -455,12 +457,37 @@ def _triangular_resolvent(T: np.ndarray, rhs: np.ndarray, z: np.ndarray) -> np.n
 def _simulate_kernel(A, B, C, D, u, x0):
     """Exact ``y(n) = C x(n) + D u(n)``, ``x(n+1) = A x(n) + B u(n)``.
 
-    Returns ``y`` (N,) and ``x(N)``. Balances ``A`` (exact diagonal
-    scaling), then uses its eigendecomposition when that is well conditioned,
-    else the complex Schur cascade.
+    Returns ``y`` (N,) and ``x(N)``. States that ``A`` does not couple (the
+    weakly connected components of its sparsity graph, e.g. the modes of a
+    modal plant) are simulated as separate systems, so a defective block (a
+    rigid body's double integrator) needs the slower Schur cascade only for
+    its own states.
     """
-    if A.shape[0] == 0:
+    n_states = A.shape[0]
+    if n_states == 0:
         return D * u, np.zeros(0)
+    n_blocks, labels = scipy.sparse.csgraph.connected_components(
+        scipy.sparse.csr_matrix(A != 0), directed=True, connection="weak"
+    )
+    if n_blocks == 1:
+        return _simulate_block(A, B, C, D, u, x0)
+    y = D * u
+    x_final = np.empty(n_states)
+    for block in range(n_blocks):
+        index = np.flatnonzero(labels == block)
+        y_block, x_final[index] = _simulate_block(
+            A[np.ix_(index, index)], B[index], C[index], 0.0, u, x0[index]
+        )
+        y += y_block
+    return y, x_final
+
+
+def _simulate_block(A, B, C, D, u, x0):
+    """:func:`_simulate_kernel` for one block of coupled states.
+
+    Balances ``A`` (exact diagonal scaling), then uses its eigendecomposition
+    when that is well conditioned, else the complex Schur cascade.
+    """
     balanced, scale = _balance(A)
     B, C, x0 = B / scale, C * scale, x0 / scale
     eigenvalues, vectors = np.linalg.eig(balanced)

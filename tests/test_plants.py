@@ -307,3 +307,23 @@ def test_margins_type_is_named(margins):
         "modulus_margin",
     )
     assert all(math.isfinite(value) for value in margins)
+
+
+def test_documented_margins_and_closed_loop_poles(stage, margins):
+    """The figures stated in the module docstring, to their stated digits."""
+    assert margins.crossover_hz == pytest.approx(39.6, abs=0.05)
+    assert margins.phase_margin == pytest.approx(40.2, abs=0.05)
+    assert margins.gain_margin == pytest.approx(2.15, abs=0.005)
+    assert 20 * np.log10(margins.gain_margin) == pytest.approx(6.7, abs=0.05)
+    assert margins.lower_gain_margin == pytest.approx(0.126, abs=0.0005)
+    assert margins.modulus_margin == pytest.approx(0.46, abs=0.005)
+    s = np.log(np.linalg.eigvals(stage.G_z.A).astype(complex)) / TS
+    s = s[s.imag >= 0]
+    hz, zeta = np.abs(s) / (2 * np.pi), -s.real / np.abs(s)
+    for f, z in [(171.2, 0.0067), (235.3, 0.0054), (439.3, 0.0114),
+                 (609.9, 0.0151), (43.8, 0.86), (326.0, 0.58)]:
+        k = np.argmin(np.abs(hz - f))
+        assert hz[k] == pytest.approx(f, abs=0.5)
+        assert zeta[k] == pytest.approx(z, abs=0.005)
+    real = np.sort(hz[np.abs(s.imag) < 1e-9])
+    np.testing.assert_allclose(real, [5.7, 35.2], atol=0.05)

@@ -282,3 +282,35 @@ def test_rejects_bad_states_and_lengths(stage):
         true_frf(stage.G_y4, 10.0)
     with pytest.raises(ValueError, match="sample_time must be a finite number > 0"):
         frequency_grid(10, 0.0)
+
+
+def test_inputs_are_never_modified(stage):
+    rng = np.random.default_rng(10)
+    u = rng.standard_normal(300)
+    x0 = 1e-6 * rng.standard_normal(stage.G_z.nstates)
+    u_copy, x0_copy = u.copy(), x0.copy()
+    result = simulate(stage.G_z, u, 3, x0=x0, snr_db=40.0, rng=1)
+    np.testing.assert_array_equal(u, u_copy)
+    np.testing.assert_array_equal(x0, x0_copy)
+    result.u_h[:] = 0.0  # the result holds copies
+    np.testing.assert_array_equal(u, u_copy)
+
+
+def test_uncoupled_blocks_in_any_state_order_match_recursion(stage):
+    """The plant's modes are uncoupled blocks of A (simulated separately);
+    shuffle the states so the blocks interleave, and give one block no output:
+    output and final state still match the plain recursion."""
+    system = stage.plant[1, 0]
+    rng = np.random.default_rng(11)
+    order = rng.permutation(system.nstates)
+    A = system.A[np.ix_(order, order)]
+    B, C = system.B[order], system.C[:, order].copy()
+    C[0, order.tolist().index(4)] = 0.0  # mode 2's first state: output row...
+    C[0, order.tolist().index(5)] = 0.0  # ...and its second: no output
+    shuffled = control.ss(A, B, C, [[0.3]], TS)
+    u = rng.standard_normal(900)
+    x0 = 1e-6 * rng.standard_normal(system.nstates)
+    result = simulate(shuffled, u, 3, x0=x0)
+    expected, x_final = _recursion(shuffled, u, x0)
+    assert _relative(result.y_h, expected) < 1e-9
+    assert _relative(result.x_final, x_final) < 1e-9
