@@ -1,334 +1,212 @@
-"""Compiled per-window kernel of the fast closed form (optional, needs numba).
+"""Compiled kernel of the fast closed form (optional, needs numba).
 
-:func:`solve_windows` does, for every window and in parallel over windows,
-everything :func:`lrmfrf.solvers.solve_local_normal_equations` does with
-array operations: gather the window data from the DFTs, build the Gram matrix
-``A^H A`` and ``A^H b`` (in the basis and column order of
-:class:`lrmfrf.windows.StructuredWindows`) from a few polynomial moments of
-the products of the window sequences (:func:`moment_tables`), Cholesky-factorise
-it with the equilibrated pivot check, solve, refine with the explicit residual
-``b - A theta``, and compute the centre-column diagonal of ``(A^H A)^-1``.
-Nothing of size ``(B, n_params, n_params)`` is ever stored. Compiled with
-``cache=True`` (the first call in a fresh environment compiles for ~10-20 s,
-later processes load the cache in well under a second) and
-``fastmath=False``.
+:func:`solve_windows` does, for every window, what
+:func:`lrmfrf.solvers.solve_local_normal_equations` does with array
+operations: gather the window data from the DFTs, build the Gram matrix
+``A^H A`` and ``A^H b`` from polynomial moments of the products of the window
+sequences, Cholesky-factorise it with the equilibrated pivot check, solve,
+refine once with the explicit residual ``b - A theta``, and compute the
+centre-column diagonal of ``(A^H A)^-1``.
 
-The columns of ``A`` are described by ``weights`` (L, p), real basis
-polynomials on the window, and ``col_base`` (p,), the base sequence each
-column multiplies: ``0..F-1`` the input band ``U(k+r+fM)``, ``F+q`` the
-constant of experiment ``q`` (transient), ``F+P`` the sequence ``-Y(k+r)``
-(denominator).
+Layout of the work ("lanes"): windows are processed ``LANES`` at a time, and
+every per-window quantity is stored with the lane index last, real and
+imaginary parts apart. Every inner loop then runs over the lanes with unit
+stride, which the compiler turns into SIMD instructions: the small dense
+linear algebra of one window (a 27 x 27 complex Cholesky for the paper's
+degrees) is vectorised *across* windows instead of within one. Groups of
+lanes are shared by threads (the kernel releases the GIL; numba's own
+``parallel=True`` doubled the compile time for nothing).
 
-Use :data:`AVAILABLE` to know whether numba is importable; importing this
-module never fails without it.
+Structure used (all exact up to round-off):
+
+- every column of ``A`` is a real basis polynomial ``w_i(r)`` times a base
+  sequence (an input band ``U(k+r+fM)``, the constant of a transient, or
+  ``-Y(k+r)``), so a Gram entry is ``sum_r w_i(r) w_j(r) S_ab(r)`` with the
+  pair series ``S_ab = sum_q conj(s_a) s_b``. The products ``w_i w_j`` are
+  expanded in an orthonormal polynomial basis ``q_d`` of the window, so the
+  whole Gram matrix needs only the moments ``m_ab[d] = sum_r q_d(r) S_ab(r)``
+  (``moment_tables``);
+- the window is symmetric and the ``q_d`` and ``w_i`` are even or odd in
+  ``r``: a moment is a sum over ``r >= 0`` of ``S(r) +- S(-r)`` (half the
+  work), and half of the expansion coefficients are exactly zero and skipped;
+- the transient-transient block is the same in every window (a constant).
+
+Compiled with ``cache=True``; the only fast-math flag is ``contract`` (fused
+multiply-add, which rounds once instead of twice), so results equal the numpy
+path up to round-off. Import never fails without numba: see
+:data:`AVAILABLE`.
 """
 
 from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 try:  # pragma: no cover - exercised when numba is installed
     import numba
-    from numba import njit, prange
+    from numba import njit
 
     AVAILABLE = True
 except ImportError:  # pragma: no cover - exercised when numba is absent
     numba = None
     AVAILABLE = False
 
-__all__ = ["AVAILABLE", "moment_tables", "solve_windows"]
+__all__ = ["AVAILABLE", "LANES", "moment_tables", "solve_windows"]
 
-#: Windows handled by one task of the parallel loop (scratch reused within it).
-_TASK = 64
+#: Windows solved together in SIMD lanes. Loops over fewer than ~40 lanes are
+#: fully unrolled by LLVM and then not vectorised (it cannot prove that the
+#: scratch rows do not alias); 48 lanes vectorise with runtime alias checks
+#: and keep the Gram matrices of a lane group (~290 kB) in the L2 cache.
+LANES = 48
 
+#: Lane groups a thread takes at a time from the shared queue.
+_GROUPS_PER_TASK = 8
 
-def _solve_windows_py(
-    U, Y, bins, weights, col_base, tables, F, n_centre, fallback_tol, refine_tol,
-    refine_steps, theta, rss, centre_var, fast,
-):
-    """Loop over windows in tasks; see :func:`solve_windows`."""
-    B = bins.shape[0]
-    n_tasks = (B + _TASK - 1) // _TASK
-    for task in prange(n_tasks):
-        scratch = _scratch_alloc(U.shape[0], weights.shape[0], weights.shape[1], F)
-        stop = min(B, (task + 1) * _TASK)
-        for w in range(task * _TASK, stop):
-            _one_window(
-                U, Y, bins[w], weights, col_base, tables, F, n_centre,
-                fallback_tol, refine_tol, refine_steps, scratch, theta[w],
-                centre_var[w], rss, fast, w,
-            )
+#: Pair kinds of the moment tables.
+_DATA_DATA, _CONST_DATA, _DATA_CONST = 0, 1, 2
 
 
-def _scratch_alloc_py(P, L, p, F):
-    """Work arrays of one window (reused by all windows of a task)."""
-    nb = F + P + 1
-    base = np.zeros((nb, P, L), dtype=np.complex128)
-    n_pairs = nb * (nb + 1) // 2
-    mr = np.empty((n_pairs, L))
-    mi = np.empty((n_pairs, L))
-    accr = np.empty(p * p)
-    acci = np.empty(p * p)
-    gram = np.zeros((p, p), dtype=np.complex128)
-    rhs = np.empty(p, dtype=np.complex128)
-    delta = np.empty(p, dtype=np.complex128)
-    res = np.empty((P, L), dtype=np.complex128)
-    poly = np.empty((nb, L), dtype=np.complex128)
-    tail = np.empty((p, p), dtype=np.complex128)
-    scale = np.empty(p)
-    return base, mr, mi, accr, acci, gram, rhs, delta, res, poly, tail, scale
+# ---------------------------------------------------------------------------
+# tables (per layout, data-independent)
+# ---------------------------------------------------------------------------
 
 
-def _one_window_py(
-    U, Y, k, weights, col_base, tables, F, n_centre, fallback_tol, refine_tol,
-    refine_steps, scratch, theta, cvar, rss, fast, w,
-):
-    """Window centred at slow bin ``k``: writes ``theta``, ``cvar``, ``rss[w]``
-    and ``fast[w]`` (steps and order as in the numpy path)."""
-    base, mr, mi, accr, acci, gram, rhs, delta, res, poly, tail, scale = scratch
-    (q_basis, coef, pair_a, pair_b, pair_nd, pair_off, den_pair, perm, gstart,
-     gbase, wcoef, wdeg) = tables
-    P, N = U.shape
-    M = Y.shape[1]
-    L, p = weights.shape
-    nb = F + P + 1
-    n = L // 2
-    # window data: inputs of each band, transient constants, -Y
-    for q in range(P):
-        for r in range(L):
-            j = k + r - n
-            for f in range(F):
-                base[f, q, r] = U[q, (j + f * M) % N]
-            base[F + q, q, r] = 1.0
-            base[F + P, q, r] = -Y[q, j % M]
-    # moments m_t[d] = sum_r Q[r, d] S_t(r) of the pair series
-    # S_t = sum_q conj(base_a) base_b of every base pair t = (a >= b)
-    n_pairs = pair_a.shape[0]
-    for t in range(n_pairs):
-        a = pair_a[t]
-        b = pair_b[t]
-        nd = pair_nd[t]
-        for d in range(nd):
-            mr[t, d] = 0.0
-            mi[t, d] = 0.0
-        for r in range(L):
-            acc = 0j
-            for q in range(P):
-                acc += np.conj(base[a, q, r]) * base[b, q, r]
-            s_re = acc.real
-            s_im = acc.imag
-            for d in range(nd):
-                mr[t, d] += q_basis[r, d] * s_re
-                mi[t, d] += q_basis[r, d] * s_im
-        # Gram block: G[i, j] = sum_d C_t[d, i, j] m_t[d] (grouped order)
-        ma = gstart[a + 1] - gstart[a]
-        mb = gstart[b + 1] - gstart[b]
-        size = ma * mb
-        off = pair_off[t]
-        for e in range(size):
-            accr[e] = 0.0
-            acci[e] = 0.0
-        for d in range(nd):
-            cr = mr[t, d]
-            ci = mi[t, d]
-            row = off + d * size
-            for e in range(size):
-                c = coef[row + e]
-                accr[e] += c * cr
-                acci[e] += c * ci
-        for i in range(ma):
-            ii = perm[gstart[a] + i]
-            for j in range(mb):
-                jc = perm[gstart[b] + j]
-                e = i * mb + j
-                if ii >= jc:
-                    gram[jc, ii] = complex(accr[e], acci[e])
-                else:
-                    gram[ii, jc] = complex(accr[e], -acci[e])
-    # A^H b = -sum_r w_i conj(base_a) base_den = -conj(sum_d c_i[d] m_(den,a)[d])
-    for gi in range(p):
-        t = den_pair[gbase[gi]]
-        ar = 0.0
-        ai = 0.0
-        for d in range(wdeg[gi] + 1):
-            ar += wcoef[gi, d] * mr[t, d]
-            ai += wcoef[gi, d] * mi[t, d]
-        rhs[perm[gi]] = complex(-ar, ai)
-    # Cholesky with the equilibrated pivot check (van der Sluis); right-looking
-    # on the transposed lower triangle (column j of L in row j of ``gram``)
-    ok = True
-    for j in range(p):
-        scale[j] = np.sqrt(abs(gram[j, j].real))
-        if not scale[j] > 2.2250738585072014e-308:
-            ok = False
-    for j in range(p):
-        if not ok:
-            break
-        d = gram[j, j].real
-        if not d > 0.0:
-            ok = False
-            break
-        ljj = np.sqrt(d)
-        if not ljj / scale[j] > fallback_tol:
-            ok = False
-            break
-        gram[j, j] = ljj
-        inv = 1.0 / ljj
-        for i in range(j + 1, p):
-            gram[j, i] *= inv
-        for m in range(j + 1, p):
-            c = np.conj(gram[j, m])
-            for i in range(m, p):
-                gram[m, i] -= gram[j, i] * c
-    if not ok:
-        fast[w] = False
-        rss[w] = np.nan
-        for i in range(p):
-            theta[i] = np.nan
-        for i in range(n_centre):
-            cvar[i] = np.nan
-        return
-    _chol_solve(gram, rhs, theta)
-    change = 0.0
-    for step in range(refine_steps + 1):
-        # residual b - A theta: per-base polynomial values, then the windows
-        for a in range(nb):
-            for r in range(L):
-                poly[a, r] = 0.0
-        for i in range(p):
-            a = col_base[i]
-            t = theta[i]
-            for r in range(L):
-                poly[a, r] += weights[r, i] * t
-        total = 0.0
-        for q in range(P):
-            for r in range(L):
-                acc = -base[F + P, q, r]
-                for a in range(nb):
-                    acc -= poly[a, r] * base[a, q, r]
-                res[q, r] = acc
-                total += acc.real ** 2 + acc.imag ** 2
-        rss[w] = total
-        if step == refine_steps:
-            break
-        # A^H r, the correction, its size
-        for a in range(nb):
-            for r in range(L):
-                acc = 0j
-                for q in range(P):
-                    acc += np.conj(base[a, q, r]) * res[q, r]
-                poly[a, r] = acc
-        for i in range(p):
-            s = poly[col_base[i]]
-            acc = 0j
-            for r in range(L):
-                acc += weights[r, i] * s[r]
-            rhs[i] = acc
-        _chol_solve(gram, rhs, delta)
-        num = 0.0
-        den = 0.0
-        for i in range(p):
-            sd = delta[i] * scale[i]
-            st = theta[i] * scale[i]
-            num += sd.real**2 + sd.imag**2
-            den += st.real**2 + st.imag**2
-            theta[i] += delta[i]
-        change = np.sqrt(num / den) if den > 0.0 else np.inf
-    fast[w] = not (refine_steps > 0 and not change <= refine_tol)
-    # diag of (L L^H)^-1 at the trailing columns: column norms of inv(L_tail)
-    off = p - n_centre
-    for c in range(n_centre):
-        for i in range(n_centre):
-            tail[i, c] = 0.0
-        tail[c, c] = 1.0 / gram[off + c, off + c].real
-        for i in range(c + 1, n_centre):
-            acc = 0j
-            for m in range(c, i):
-                acc -= gram[off + m, off + i] * tail[m, c]
-            tail[i, c] = acc / gram[off + i, off + i].real
-    for c in range(n_centre):
-        acc = 0.0
-        for i in range(c, n_centre):
-            acc += tail[i, c].real ** 2 + tail[i, c].imag ** 2
-        cvar[c] = acc
+def moment_tables(weights: np.ndarray, col_base: np.ndarray, F: int, P: int) -> dict:
+    """Per-layout tables of the moment form of the normal equations.
 
+    Parameters
+    ----------
+    weights : ndarray of shape (2n+1, p)
+        Basis polynomial of each column on the window (internal order of
+        :class:`lrmfrf.windows.StructuredWindows`).
+    col_base : ndarray of shape (p,), int
+        Base sequence of each column: ``f < F`` the input band ``f``,
+        ``F + q`` the transient constant of experiment ``q``, ``F + P`` the
+        sequence ``-Y``.
+    F, P : int
 
-def _chol_solve_py(chol, rhs, out):
-    """Solve ``L L^H out = rhs``; column ``j`` of ``L`` is row ``j`` of ``chol``."""
-    p = rhs.shape[0]
-    for j in range(p):
-        out[j] = rhs[j]
-    for j in range(p):
-        zj = out[j] / chol[j, j].real
-        out[j] = zj
-        for i in range(j + 1, p):
-            out[i] -= chol[j, i] * zj
-    for j in range(p - 1, -1, -1):
-        acc = out[j]
-        for m in range(j + 1, p):
-            acc -= np.conj(chol[j, m]) * out[m]
-        out[j] = acc / chol[j, j].real
-
-
-if AVAILABLE:  # pragma: no branch
-    _opts = {"cache": True, "fastmath": False, "nogil": True, "error_model": "numpy"}
-    _chol_solve = njit(**_opts)(_chol_solve_py)
-    _scratch_alloc = njit(**_opts)(_scratch_alloc_py)
-    _one_window = njit(**_opts)(_one_window_py)
-    _solve_windows = njit(parallel=True, **_opts)(_solve_windows_py)
-
-
-def moment_tables(weights, col_base, F, P):
-    """Per-layout tables of the moment form of the Gram matrix.
-
-    Columns are grouped by base sequence (``perm``: grouped position ->
-    internal column; group ``a`` spans ``gstart[a]:gstart[a+1]``). For every
-    base pair ``t = (a, b)``, ``a >= b``, the products ``w_i(r) w_j(r)`` of
-    the two groups' basis polynomials have degree ``<= D_t``; they are
-    expanded exactly in the first ``D_t + 1`` columns of ``q_basis``, an
-    orthonormal polynomial basis on the window (QR of a Chebyshev
-    Vandermonde matrix, condition number ~3), with coefficients ``coef``.
-    Then the Gram block is ``sum_d C_t[d] m_t[d]`` with the moments
-    ``m_t[d] = sum_r q_basis[r, d] S_t(r)`` of the pair series: ``D_t + 1``
-    sums over the window instead of one per Gram entry.
+    Returns
+    -------
+    dict of ndarrays
+        ``q_basis`` (2n+1, D): orthonormal polynomials on the window, ``q_d``
+        of parity ``d``. One entry per base pair ``t`` (``a >= b`` in base
+        code, not both constants): ``pair_kind``, ``pair_a``, ``pair_b``
+        (data index ``0..F`` with ``F`` for ``-Y``, or experiment), ``pair_nd``
+        moments from ``pair_off``. The packed lower Gram entry ``e = I(I+1)/2
+        + J`` is ``ent_const[e] + sum coef * m`` over
+        ``ent_ptr[e]:ent_ptr[e+1]`` of ``ent_mom``/``ent_coef``, conjugated
+        where ``ent_conj``. ``A^H b`` at column ``I`` is ``-conj(sum coef *
+        m)`` over ``rhs_ptr``/``rhs_mom``/``rhs_coef``. ``data_index`` maps a
+        base code to its data index (``-1`` for constants).
     """
+    weights = np.asarray(weights, dtype=float)
+    col_base = np.asarray(col_base, dtype=np.int64)
     L, p = weights.shape
-    n_base = F + P + 1
-    perm = np.argsort(col_base, kind="stable").astype(np.int64)
-    gbase = col_base[perm]
-    gstart = np.searchsorted(gbase, np.arange(n_base + 1)).astype(np.int64)
-    wg = weights[:, perm]
     n = L // 2
+    den_code = F + P
     x = (np.arange(L) - n) / max(n, 1)
-    # polynomial degree of each column (exact: weights are polynomials in x)
-    deg = np.array([_degree(x, wg[:, g]) for g in range(p)], dtype=np.int64)
-    top = [int(deg[gstart[a]:gstart[a + 1]].max(initial=0)) for a in range(n_base)]
-    d_max = min(L - 1, 2 * max(top))
-    q_basis, _ = np.linalg.qr(np.polynomial.chebyshev.chebvander(x, d_max))
-    pair_a, pair_b, pair_nd, pair_off, coef = [], [], [], [], []
-    den_pair = np.zeros(n_base, dtype=np.int64)
+    deg = np.array([_degree(x, weights[:, i]) for i in range(p)], dtype=np.int64)
+    top = np.zeros(F + P + 1, dtype=np.int64)
+    for i in range(p):
+        top[col_base[i]] = max(top[col_base[i]], deg[i])
+    q_basis = _parity_basis(x, min(L - 1, 2 * int(top.max())))
+
+    def data_index(code):
+        if code < F:
+            return code
+        return F if code == den_code else -1
+
+    pairs = {}
+    kind, pa, pb, pnd, poff = [], [], [], [], []
     offset = 0
-    for a in range(n_base):
+    for a in range(F + P + 1):
         for b in range(a + 1):
-            nd = min(L, top[a] + top[b] + 1)
-            wa = wg[:, gstart[a]:gstart[a + 1]]
-            wb = wg[:, gstart[b]:gstart[b + 1]]
-            block = np.einsum("rd,ri,rj->dij", q_basis[:, :nd], wa, wb)
-            if a == n_base - 1:
-                den_pair[b] = len(pair_a)
-            pair_a.append(a)
-            pair_b.append(b)
-            pair_nd.append(nd)
-            pair_off.append(offset)
-            coef.append(block.ravel())
-            offset += block.size
-    wcoef = np.ascontiguousarray(q_basis.T @ wg).T.copy()  # (p, d_max + 1)
+            da, db = data_index(a), data_index(b)
+            if da < 0 and db < 0:
+                continue  # constant block
+            if da >= 0 and db >= 0:
+                kind.append(_DATA_DATA)
+                pa.append(da)
+                pb.append(db)
+            elif da < 0:  # a constant (transient), b an input band
+                kind.append(_CONST_DATA)
+                pa.append(a - F)
+                pb.append(db)
+            else:  # a = -Y, b a transient constant
+                kind.append(_DATA_CONST)
+                pa.append(da)
+                pb.append(b - F)
+            nd = int(min(L, top[a] + top[b] + 1))
+            pairs[(a, b)] = (len(kind) - 1, offset, nd)
+            pnd.append(nd)
+            poff.append(offset)
+            offset += nd
+
+    ent_ptr, ent_mom, ent_coef, ent_conj, ent_const = [0], [], [], [], []
+    for i in range(p):
+        for j in range(i + 1):
+            a, b = col_base[i], col_base[j]
+            product = weights[:, i] * weights[:, j]
+            lo, hi = max(a, b), min(a, b)
+            ent_conj.append(a < b)
+            if (lo, hi) not in pairs:  # both transient constants
+                ent_const.append(product.sum() if a == b else 0.0)
+                ent_ptr.append(len(ent_mom))
+                continue
+            ent_const.append(0.0)
+            _, off, nd = pairs[(lo, hi)]
+            coef = _expand(q_basis[:, :nd], product)
+            keep = np.flatnonzero(coef)
+            ent_mom += list(off + keep)
+            ent_coef += list(coef[keep])
+            ent_ptr.append(len(ent_mom))
+
+    rhs_ptr, rhs_mom, rhs_coef = [0], [], []
+    for i in range(p):
+        _, off, nd = pairs[(den_code, col_base[i])]
+        coef = _expand(q_basis[:, :nd], weights[:, i])
+        keep = np.flatnonzero(coef)
+        rhs_mom += list(off + keep)
+        rhs_coef += list(coef[keep])
+        rhs_ptr.append(len(rhs_mom))
+
     as_int = lambda v: np.asarray(v, dtype=np.int64)  # noqa: E731
-    return (
-        np.ascontiguousarray(q_basis), np.concatenate(coef), as_int(pair_a),
-        as_int(pair_b), as_int(pair_nd), as_int(pair_off), den_pair, perm, gstart,
-        as_int(gbase), np.ascontiguousarray(wcoef), np.minimum(deg, d_max),
-    )
+    return {
+        "q_basis": np.ascontiguousarray(q_basis),
+        "pair_kind": as_int(kind), "pair_a": as_int(pa), "pair_b": as_int(pb),
+        "pair_nd": as_int(pnd), "pair_off": as_int(poff),
+        "ent_ptr": as_int(ent_ptr), "ent_mom": as_int(ent_mom),
+        "ent_coef": np.asarray(ent_coef, dtype=float),
+        "ent_conj": np.asarray(ent_conj, dtype=np.bool_),
+        "ent_const": np.asarray(ent_const, dtype=float),
+        "rhs_ptr": as_int(rhs_ptr), "rhs_mom": as_int(rhs_mom),
+        "rhs_coef": np.asarray(rhs_coef, dtype=float),
+        "data_index": as_int([data_index(c) for c in range(F + P + 1)]),
+        "n_moments": offset,
+    }
+
+
+def _parity_basis(x: np.ndarray, degree: int) -> np.ndarray:
+    """Orthonormal polynomials of degree 0..degree on the symmetric grid ``x``,
+    each exactly even or odd (QR of a Chebyshev Vandermonde matrix, condition
+    number ~3, then the parity enforced)."""
+    q, r = np.linalg.qr(np.polynomial.chebyshev.chebvander(x, degree))
+    q = q * np.sign(np.diag(r))
+    sign = (-1.0) ** np.arange(degree + 1)
+    return 0.5 * (q + sign * q[::-1])
+
+
+def _expand(q_basis: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Coefficients of ``values`` in the orthonormal ``q_basis``; entries that
+    are zero by parity (round-off relative to the largest) are set to 0."""
+    coef = q_basis.T @ values
+    error = np.max(np.abs(q_basis @ coef - values), initial=0.0)
+    scale = np.max(np.abs(values), initial=0.0)
+    if error > 1e-11 * max(scale, 1e-300):
+        raise AssertionError("moment expansion is not exact; degree bound wrong")
+    coef[np.abs(coef) <= 1e-13 * np.max(np.abs(coef), initial=0.0)] = 0.0
+    return coef
 
 
 def _degree(x, values):
@@ -343,6 +221,408 @@ def _degree(x, values):
     return x.size - 1
 
 
+# ---------------------------------------------------------------------------
+# the kernel (plain Python, compiled below when numba is available)
+# ---------------------------------------------------------------------------
+
+
+def _solve_range_py(
+    U_re, U_im, Y_re, Y_im, bins, weights, col_base, data_index, F, n_centre,
+    q_basis, pair_kind, pair_a, pair_b, pair_nd, pair_off,
+    ent_ptr, ent_mom, ent_coef, ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef,
+    n_moments, fallback_tol, refine_tol, refine_steps, theta, rss, cvar, fast,
+    first_group, stop_group,
+):
+    """Lane groups ``first_group..stop_group-1`` (one thread's share)."""
+    P = U_re.shape[0]
+    L, p = weights.shape
+    s = _scratch(F, P, L, p, n_moments, n_centre)
+    for group in range(first_group, stop_group):
+        _lane_group(
+            U_re, U_im, Y_re, Y_im, bins, group * LANES, weights, col_base,
+            data_index, F, n_centre, q_basis, pair_kind, pair_a, pair_b,
+            pair_nd, pair_off, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const,
+            rhs_ptr, rhs_mom, rhs_coef, fallback_tol, refine_tol,
+            refine_steps, theta, rss, cvar, fast, s,
+        )
+
+
+def _scratch_py(F, P, L, p, n_moments, n_centre):
+    n_base = F + P + 1
+    n = L // 2
+    f64 = np.float64
+    return (
+        np.empty((F + 1, P, L, LANES), f64), np.empty((F + 1, P, L, LANES), f64),
+        np.empty((L, LANES), f64), np.empty((L, LANES), f64),
+        np.empty((n + 1, LANES), f64), np.empty((n + 1, LANES), f64),
+        np.empty((n + 1, LANES), f64), np.empty((n + 1, LANES), f64),
+        np.empty((n_moments, LANES), f64), np.empty((n_moments, LANES), f64),
+        np.empty((p * (p + 1) // 2, LANES), f64),
+        np.empty((p * (p + 1) // 2, LANES), f64),
+        np.empty((p, LANES), f64), np.empty((p, LANES), f64),
+        np.empty((p, LANES), f64), np.empty((p, LANES), f64),
+        np.empty((p, LANES), f64), np.empty((p, LANES), f64),
+        np.empty((p, LANES), f64),
+        np.empty((n_base, L, LANES), f64), np.empty((n_base, L, LANES), f64),
+        np.empty((P, L, LANES), f64), np.empty((P, L, LANES), f64),
+        np.empty(LANES, np.bool_), np.empty(LANES, f64), np.empty(LANES, f64),
+        np.empty(LANES, np.int64),
+        np.empty((n_centre, n_centre, LANES), f64),
+        np.empty((n_centre, n_centre, LANES), f64),
+    )
+
+
+def _lane_group(
+    U_re, U_im, Y_re, Y_im, bins, first, weights, col_base, data_index, F,
+    n_centre, q_basis, pair_kind, pair_a, pair_b, pair_nd, pair_off,
+    ent_ptr, ent_mom, ent_coef, ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef,
+    fallback_tol, refine_tol, refine_steps, theta, rss, cvar, fast, s,
+):
+    (sr, si, Sr, Si, Er, Ei, Or, Oi, mr, mi, Hr, Hi, gr, gi, xr, xi, dr, di,
+     scale2, polyr, polyi, resr, resi, ok, change_num, change_den, k, tr, ti) = s
+    P, N = U_re.shape
+    M = Y_re.shape[1]
+    L, p = weights.shape
+    n = L // 2
+    B = bins.shape[0]
+    for w in range(LANES):
+        k[w] = bins[min(first + w, B - 1)]
+    # 1. window data: input bands 0..F-1 and -Y (data index F)
+    for q in range(P):
+        for r in range(L):
+            for w in range(LANES):
+                j = k[w] + r - n
+                for f in range(F):
+                    idx = (j + f * M) % N
+                    sr[f, q, r, w] = U_re[q, idx]
+                    si[f, q, r, w] = U_im[q, idx]
+                jm = j % M
+                sr[F, q, r, w] = -Y_re[q, jm]
+                si[F, q, r, w] = -Y_im[q, jm]
+    # 2. moments of the pair series, by parity
+    for t in range(pair_kind.shape[0]):
+        a = pair_a[t]
+        b = pair_b[t]
+        kind = pair_kind[t]
+        for r in range(L):
+            for w in range(LANES):
+                Sr[r, w] = 0.0
+                Si[r, w] = 0.0
+        if kind == _DATA_DATA:
+            for q in range(P):
+                for r in range(L):
+                    for w in range(LANES):
+                        ar = sr[a, q, r, w]
+                        ai = si[a, q, r, w]
+                        br = sr[b, q, r, w]
+                        bi = si[b, q, r, w]
+                        Sr[r, w] += ar * br + ai * bi
+                        Si[r, w] += ar * bi - ai * br
+        elif kind == _CONST_DATA:
+            for r in range(L):
+                for w in range(LANES):
+                    Sr[r, w] = sr[b, a, r, w]
+                    Si[r, w] = si[b, a, r, w]
+        else:
+            for r in range(L):
+                for w in range(LANES):
+                    Sr[r, w] = sr[a, b, r, w]
+                    Si[r, w] = -si[a, b, r, w]
+        for h in range(1, n + 1):
+            for w in range(LANES):
+                Er[h, w] = Sr[n + h, w] + Sr[n - h, w]
+                Ei[h, w] = Si[n + h, w] + Si[n - h, w]
+                Or[h, w] = Sr[n + h, w] - Sr[n - h, w]
+                Oi[h, w] = Si[n + h, w] - Si[n - h, w]
+        off = pair_off[t]
+        for d in range(pair_nd[t]):
+            if d % 2 == 0:
+                c0 = q_basis[n, d]
+                for w in range(LANES):
+                    mr[off + d, w] = c0 * Sr[n, w]
+                    mi[off + d, w] = c0 * Si[n, w]
+                for h in range(1, n + 1):
+                    c = q_basis[n + h, d]
+                    for w in range(LANES):
+                        mr[off + d, w] += c * Er[h, w]
+                        mi[off + d, w] += c * Ei[h, w]
+            else:
+                for w in range(LANES):
+                    mr[off + d, w] = 0.0
+                    mi[off + d, w] = 0.0
+                for h in range(1, n + 1):
+                    c = q_basis[n + h, d]
+                    for w in range(LANES):
+                        mr[off + d, w] += c * Or[h, w]
+                        mi[off + d, w] += c * Oi[h, w]
+    # 3. Gram (packed lower, internal order) and A^H b from the moments
+    for e in range(ent_const.shape[0]):
+        c0 = ent_const[e]
+        for w in range(LANES):
+            Hr[e, w] = c0
+            Hi[e, w] = 0.0
+        for z in range(ent_ptr[e], ent_ptr[e + 1]):
+            c = ent_coef[z]
+            m = ent_mom[z]
+            for w in range(LANES):
+                Hr[e, w] += c * mr[m, w]
+                Hi[e, w] += c * mi[m, w]
+        if ent_conj[e]:
+            for w in range(LANES):
+                Hi[e, w] = -Hi[e, w]
+    for i in range(p):
+        for w in range(LANES):
+            gr[i, w] = 0.0
+            gi[i, w] = 0.0
+        for z in range(rhs_ptr[i], rhs_ptr[i + 1]):
+            c = rhs_coef[z]
+            m = rhs_mom[z]
+            for w in range(LANES):
+                gr[i, w] -= c * mr[m, w]
+                gi[i, w] += c * mi[m, w]
+    # 4. Cholesky with the equilibrated pivot check (van der Sluis)
+    for w in range(LANES):
+        ok[w] = True
+    for j in range(p):
+        jj = j * (j + 1) // 2 + j
+        for w in range(LANES):
+            scale2[j, w] = abs(Hr[jj, w])
+            ok[w] = ok[w] and scale2[j, w] > 2.2250738585072014e-308
+    tol2 = fallback_tol * fallback_tol
+    for j in range(p):
+        rj = j * (j + 1) // 2
+        jj = rj + j
+        for w in range(LANES):
+            d = Hr[jj, w]
+            good = d > tol2 * scale2[j, w]
+            ok[w] = ok[w] and good
+            if not good:
+                d = 1.0
+            ljj = np.sqrt(d)
+            Hr[jj, w] = ljj
+            Hi[jj, w] = 1.0 / ljj  # the inverse pivot is kept in Hi[jj]
+        for i in range(j + 1, p):
+            e = i * (i + 1) // 2 + j
+            for w in range(LANES):
+                inv = Hi[jj, w]
+                Hr[e, w] *= inv
+                Hi[e, w] *= inv
+        for m in range(j + 1, p):
+            mj = m * (m + 1) // 2 + j
+            for i in range(m, p):
+                ri = i * (i + 1) // 2
+                ij = ri + j
+                im = ri + m
+                for w in range(LANES):
+                    cr = Hr[mj, w]
+                    ci = Hi[mj, w]
+                    ar = Hr[ij, w]
+                    ai = Hi[ij, w]
+                    Hr[im, w] -= ar * cr + ai * ci
+                    Hi[im, w] -= ai * cr - ar * ci
+    # 5. solve, then refine with the explicit residual
+    _chol_solve(Hr, Hi, gr, gi, xr, xi, p)
+    for w in range(LANES):
+        change_num[w] = 0.0
+        change_den[w] = 0.0
+    for step in range(refine_steps + 1):
+        _residual(
+            sr, si, xr, xi, weights, col_base, data_index, F, polyr, polyi,
+            resr, resi,
+        )
+        if step == refine_steps:
+            break
+        _adjoint(sr, si, resr, resi, weights, col_base, data_index, F,
+                 polyr, polyi, gr, gi)
+        _chol_solve(Hr, Hi, gr, gi, dr, di, p)
+        for w in range(LANES):
+            change_num[w] = 0.0
+            change_den[w] = 0.0
+        for i in range(p):
+            for w in range(LANES):
+                change_num[w] += scale2[i, w] * (dr[i, w] ** 2 + di[i, w] ** 2)
+                change_den[w] += scale2[i, w] * (xr[i, w] ** 2 + xi[i, w] ** 2)
+                xr[i, w] += dr[i, w]
+                xi[i, w] += di[i, w]
+    # 6. diag of (L L^H)^-1 at the trailing columns: inverse of the tail of L
+    off = p - n_centre
+    for c in range(n_centre):
+        cc = (off + c) * (off + c + 1) // 2 + off + c
+        for i in range(n_centre):
+            for w in range(LANES):
+                tr[i, c, w] = 0.0
+                ti[i, c, w] = 0.0
+        for w in range(LANES):
+            tr[c, c, w] = Hi[cc, w]
+        for i in range(c + 1, n_centre):
+            ri = (off + i) * (off + i + 1) // 2 + off
+            ii = ri + i
+            for w in range(LANES):
+                accr = 0.0
+                acci = 0.0
+                for m in range(c, i):
+                    lr = Hr[ri + m, w]
+                    li = Hi[ri + m, w]
+                    accr -= lr * tr[m, c, w] - li * ti[m, c, w]
+                    acci -= lr * ti[m, c, w] + li * tr[m, c, w]
+                tr[i, c, w] = accr * Hi[ii, w]
+                ti[i, c, w] = acci * Hi[ii, w]
+    # 7. outputs of the real lanes
+    for w in range(LANES):
+        row = first + w
+        if row >= B:
+            break
+        total = 0.0
+        for q in range(P):
+            for r in range(L):
+                total += resr[q, r, w] ** 2 + resi[q, r, w] ** 2
+        refined = refine_steps == 0 or (
+            change_num[w] <= refine_tol * refine_tol * change_den[w]
+        )
+        if ok[w]:
+            for i in range(p):
+                theta[row, i, 0] = xr[i, w]
+                theta[row, i, 1] = xi[i, w]
+            rss[row] = total
+            for c in range(n_centre):
+                acc = 0.0
+                for i in range(c, n_centre):
+                    acc += tr[i, c, w] ** 2 + ti[i, c, w] ** 2
+                cvar[row, c] = acc
+            fast[row] = refined
+        else:
+            for i in range(p):
+                theta[row, i, 0] = np.nan
+                theta[row, i, 1] = np.nan
+            rss[row] = np.nan
+            for c in range(n_centre):
+                cvar[row, c] = np.nan
+            fast[row] = False
+
+
+def _chol_solve_py(Hr, Hi, gr, gi, xr, xi, p):
+    """Solve ``L L^H x = g`` for every lane; ``L`` packed lower in ``Hr/Hi``
+    with the inverse pivots in ``Hi`` at the diagonal."""
+    for j in range(p):
+        rj = j * (j + 1) // 2
+        jj = rj + j
+        for w in range(LANES):
+            accr = gr[j, w]
+            acci = gi[j, w]
+            for i in range(j):
+                lr = Hr[rj + i, w]
+                li = Hi[rj + i, w]
+                accr -= lr * xr[i, w] - li * xi[i, w]
+                acci -= lr * xi[i, w] + li * xr[i, w]
+            xr[j, w] = accr * Hi[jj, w]
+            xi[j, w] = acci * Hi[jj, w]
+    for j in range(p - 1, -1, -1):
+        jj = j * (j + 1) // 2 + j
+        for w in range(LANES):
+            accr = xr[j, w]
+            acci = xi[j, w]
+            for i in range(j + 1, p):
+                e = i * (i + 1) // 2 + j
+                lr = Hr[e, w]
+                li = Hi[e, w]
+                accr -= lr * xr[i, w] + li * xi[i, w]
+                acci -= lr * xi[i, w] - li * xr[i, w]
+            xr[j, w] = accr * Hi[jj, w]
+            xi[j, w] = acci * Hi[jj, w]
+
+
+def _residual_py(
+    sr, si, xr, xi, weights, col_base, data_index, F, polyr, polyi, resr, resi
+):
+    """``res = b - A x`` on the window of every lane, shape (P, 2n+1, LANES)."""
+    L, p = weights.shape
+    P = resr.shape[0]
+    n_base = polyr.shape[0]
+    for c in range(n_base):
+        for r in range(L):
+            for w in range(LANES):
+                polyr[c, r, w] = 0.0
+                polyi[c, r, w] = 0.0
+    for i in range(p):
+        c = col_base[i]
+        for r in range(L):
+            wt = weights[r, i]
+            for w in range(LANES):
+                polyr[c, r, w] += wt * xr[i, w]
+                polyi[c, r, w] += wt * xi[i, w]
+    for q in range(P):
+        for r in range(L):
+            for w in range(LANES):
+                resr[q, r, w] = -sr[F, q, r, w] - polyr[F + q, r, w]
+                resi[q, r, w] = -si[F, q, r, w] - polyi[F + q, r, w]
+        for c in range(n_base):
+            a = data_index[c]
+            if a < 0:
+                continue
+            for r in range(L):
+                for w in range(LANES):
+                    pr = polyr[c, r, w]
+                    pi = polyi[c, r, w]
+                    br = sr[a, q, r, w]
+                    bi = si[a, q, r, w]
+                    resr[q, r, w] -= pr * br - pi * bi
+                    resi[q, r, w] -= pr * bi + pi * br
+
+
+def _adjoint_py(
+    sr, si, resr, resi, weights, col_base, data_index, F, polyr, polyi, gr, gi
+):
+    """``g = A^H res`` of every lane (``polyr/polyi`` reused as work space)."""
+    L, p = weights.shape
+    P = resr.shape[0]
+    n_base = polyr.shape[0]
+    for c in range(n_base):
+        a = data_index[c]
+        for r in range(L):
+            for w in range(LANES):
+                polyr[c, r, w] = 0.0
+                polyi[c, r, w] = 0.0
+        if a < 0:
+            q = c - F
+            for r in range(L):
+                for w in range(LANES):
+                    polyr[c, r, w] = resr[q, r, w]
+                    polyi[c, r, w] = resi[q, r, w]
+            continue
+        for q in range(P):
+            for r in range(L):
+                for w in range(LANES):
+                    br = sr[a, q, r, w]
+                    bi = si[a, q, r, w]
+                    rr = resr[q, r, w]
+                    ri = resi[q, r, w]
+                    polyr[c, r, w] += br * rr + bi * ri
+                    polyi[c, r, w] += br * ri - bi * rr
+    for i in range(p):
+        c = col_base[i]
+        for w in range(LANES):
+            gr[i, w] = 0.0
+            gi[i, w] = 0.0
+        for r in range(L):
+            wt = weights[r, i]
+            for w in range(LANES):
+                gr[i, w] += wt * polyr[c, r, w]
+                gi[i, w] += wt * polyi[c, r, w]
+
+
+if AVAILABLE:  # pragma: no branch
+    _opts = {
+        "cache": True, "fastmath": {"contract"}, "nogil": True,
+        "error_model": "numpy",
+    }
+    _scratch = njit(**_opts)(_scratch_py)
+    _chol_solve = njit(**_opts)(_chol_solve_py)
+    _residual = njit(**_opts)(_residual_py)
+    _adjoint = njit(**_opts)(_adjoint_py)
+    _lane_group = njit(**_opts)(_lane_group)
+    _solve_range = njit(**_opts)(_solve_range_py)
+
+
 def solve_windows(
     U: np.ndarray,
     Y: np.ndarray,
@@ -355,9 +635,10 @@ def solve_windows(
     fallback_tol: float,
     refine_tol: float,
     refine_steps: int,
-    tables: tuple | None = None,
+    tables: dict | None = None,
+    n_threads: int | None = None,
 ):
-    """Solve the local normal equations of every window (compiled, parallel).
+    """Solve the local normal equations of every window (compiled, threaded).
 
     Parameters
     ----------
@@ -367,16 +648,20 @@ def solve_windows(
     weights : ndarray of shape (2n+1, p), float
         Basis polynomial of each column on the window (internal order).
     col_base : ndarray of shape (p,), int
-        Base sequence of each column (see the module docstring).
+        Base sequence of each column (see :func:`moment_tables`).
     F : int
     n_centre : int
         The last ``n_centre`` columns get their ``(A^H A)^-1`` diagonal.
     fallback_tol, refine_tol : float
         Equilibrated-pivot and refinement-change thresholds.
     refine_steps : int
-    tables : tuple, optional
+    tables : dict, optional
         :func:`moment_tables` of ``weights`` and ``col_base`` (computed when
         not given; they depend on the layout only).
+    n_threads : int, optional
+        Threads sharing the windows; default ``numba.config.NUMBA_NUM_THREADS``
+        (the number of cores unless the ``NUMBA_NUM_THREADS`` environment
+        variable says otherwise).
 
     Returns
     -------
@@ -390,19 +675,35 @@ def solve_windows(
     if not AVAILABLE:
         raise ImportError("the compiled kernel needs numba (pip install numba)")
     B, p = slow_bins.size, weights.shape[1]
-    theta = np.empty((B, p), dtype=np.complex128)
+    weights = np.ascontiguousarray(weights, dtype=np.float64)
+    col_base = np.ascontiguousarray(col_base, dtype=np.int64)
+    P = U.shape[0]
+    if tables is None:
+        tables = moment_tables(weights, col_base, F, P)
+    theta = np.empty((B, p, 2))
     rss = np.empty(B)
     centre_var = np.empty((B, n_centre))
     fast = np.empty(B, dtype=np.bool_)
-    weights = np.ascontiguousarray(weights, dtype=np.float64)
-    col_base = np.ascontiguousarray(col_base, dtype=np.int64)
-    if tables is None:
-        tables = moment_tables(weights, col_base, F, U.shape[0])
-    _solve_windows(
-        np.ascontiguousarray(U, dtype=np.complex128),
-        np.ascontiguousarray(Y, dtype=np.complex128),
-        np.ascontiguousarray(slow_bins, dtype=np.int64),
-        weights, col_base, tables, int(F), int(n_centre), float(fallback_tol),
+    t = tables
+    args = (
+        np.ascontiguousarray(U.real), np.ascontiguousarray(U.imag),
+        np.ascontiguousarray(Y.real), np.ascontiguousarray(Y.imag),
+        np.ascontiguousarray(slow_bins, dtype=np.int64), weights, col_base,
+        t["data_index"], int(F), int(n_centre), t["q_basis"], t["pair_kind"],
+        t["pair_a"], t["pair_b"], t["pair_nd"], t["pair_off"], t["ent_ptr"],
+        t["ent_mom"], t["ent_coef"], t["ent_conj"], t["ent_const"], t["rhs_ptr"],
+        t["rhs_mom"], t["rhs_coef"], int(t["n_moments"]), float(fallback_tol),
         float(refine_tol), int(refine_steps), theta, rss, centre_var, fast,
     )
-    return theta, rss, centre_var, fast
+    n_groups = (B + LANES - 1) // LANES
+    tasks = [
+        (start, min(n_groups, start + _GROUPS_PER_TASK))
+        for start in range(0, n_groups, _GROUPS_PER_TASK)
+    ]
+    threads = min(n_threads or numba.config.NUMBA_NUM_THREADS, len(tasks))
+    if threads <= 1:
+        _solve_range(*args, 0, n_groups)
+    else:  # the kernel releases the GIL: threads share the lane groups
+        with ThreadPoolExecutor(threads) as pool:
+            list(pool.map(lambda task: _solve_range(*args, *task), tasks))
+    return theta.view(np.complex128)[..., 0], rss, centre_var, fast

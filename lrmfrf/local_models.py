@@ -15,8 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .solvers import (
+    CHUNK_BYTES,
     lemma2_variance,
     noise_variance,
+    qr_chunk_size,
     resolve_backend,
     solve_local_least_squares,
     solve_local_normal_equations,
@@ -32,9 +34,6 @@ __all__ = [
     "one_sided_fast_grid",
     "window_excitation",
 ]
-
-#: Default bound on the bytes of one chunk's regressor.
-CHUNK_BYTES = 2**26
 
 #: Solvers of :func:`fit_local_models`.
 SOLVERS = ("auto", "normal", "qr")
@@ -147,8 +146,9 @@ def fit_local_models(
     backend : {"auto", "numpy", "numba"}, default="auto"
         Implementation of the ``"normal"`` solver (see
         :func:`lrmfrf.solvers.solve_local_normal_equations`): ``"auto"`` uses
-        the compiled kernel when numba is installed and
-        ``LRMFRF_DISABLE_NUMBA`` is not set. Ignored by ``"qr"``.
+        the compiled kernel when numba is installed, ``LRMFRF_DISABLE_NUMBA``
+        is not set and there are enough windows to pay for it
+        (:data:`lrmfrf.solvers.COMPILED_MIN_WINDOWS`). Ignored by ``"qr"``.
 
     Returns
     -------
@@ -160,13 +160,13 @@ def fit_local_models(
         slow_bins = half_slow_bins(M)
     slow_bins = np.asarray(slow_bins, dtype=int)
     solver = _check_solver(solver, return_leverage)
-    backend = resolve_backend(backend)
+    backend = resolve_backend(backend, slow_bins.size)
     if chunk_size is None:
-        # the compiled kernel keeps no batched temporaries; its chunk is bounded
-        # by the QR fallback (every window of a chunk may need it)
-        chunk_size = default_chunk_size(
-            layout, "qr" if backend == "numba" else solver
-        )
+        # the compiled kernel keeps no batched temporaries (and batches its QR
+        # fallback itself): one call for all windows
+        compiled = solver == "normal" and backend == "numba"
+        chunk_size = slow_bins.size if compiled else default_chunk_size(layout, solver)
+    chunk_size = max(1, chunk_size)
     # Identifiability of G is decided by the input and transient columns.
     kwargs = {"rank_columns": layout.n_system + layout.n_transient}
     if rank_tol is not None:
@@ -191,20 +191,19 @@ def fit_local_models(
                     )
                 )
 
-    theta = np.concatenate([s.theta for s in parts])
-    gram_inv_diag = np.concatenate([s.gram_inv_diag for s in parts])
-    rss = np.concatenate([s.rss for s in parts])
-    excited = (window_excitation(U, slow_bins, layout) > EXCITATION_TOL).all(axis=1)
-    well_posed = np.concatenate([s.well_posed for s in parts]) & excited
-    leverage = (
-        np.concatenate([s.leverage for s in parts]) if return_leverage else None
+    theta, gram_inv_diag, rss, well_posed = (
+        _joined([getattr(s, name) for s in parts])
+        for name in ("theta", "gram_inv_diag", "rss", "well_posed")
     )
+    excited = (window_excitation(U, slow_bins, layout) > EXCITATION_TOL).all(axis=1)
+    well_posed = well_posed & excited
+    leverage = _joined([s.leverage for s in parts]) if return_leverage else None
     noise_var = noise_variance(rss, layout.dof)
     system = F * theta[:, :F]
     system_var = lemma2_variance(gram_inv_diag[:, :F], noise_var, F)
     transient_cols = [layout.transient_column(p) for p in range(layout.n_experiments)]
     transient = theta[:, transient_cols]
-    bad = ~well_posed
+    bad = np.flatnonzero(~well_posed)
     for arr in (theta, system, system_var, transient, noise_var, rss):
         arr[bad] = np.nan
     return LocalModelFit(
@@ -224,12 +223,16 @@ def fit_local_models(
 
 def default_chunk_size(layout: LocalModelLayout, solver: str = "qr") -> int:
     """Windows per chunk that keep a chunk's largest arrays near 64 MiB."""
+    if solver != "normal":
+        return qr_chunk_size(layout)
     p, L = layout.n_params, layout.window
-    if solver == "normal":
-        per_window = 16 * (3 * p * p + 6 * L * (layout.F + 2) * layout.n_experiments)
-    else:
-        per_window = 16 * layout.n_equations * layout.n_params
+    per_window = 16 * (3 * p * p + 6 * L * (layout.F + 2) * layout.n_experiments)
     return max(1, CHUNK_BYTES // per_window)
+
+
+def _joined(parts: list[np.ndarray]) -> np.ndarray:
+    """Concatenate per-chunk results (no copy for a single chunk)."""
+    return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
 def _check_solver(solver: str, return_leverage: bool) -> str:

@@ -22,6 +22,7 @@ __all__ = [
     "noise_variance",
     "lemma2_variance",
     "resolve_backend",
+    "qr_chunk_size",
 ]
 
 #: Default relative threshold on the diagonal of R (equilibrated QR) below
@@ -39,8 +40,17 @@ CHOLESKY_FALLBACK_TOL = 1e-6
 #: is the square of the error left after it while refinement converges.
 REFINEMENT_TOL = 1e-5
 
+#: Bound on the bytes of one batch's largest arrays (regressors, Gram matrices).
+CHUNK_BYTES = 2**26
+
 #: Implementations of :func:`solve_local_normal_equations`.
 BACKENDS = ("auto", "numpy", "numba")
+
+#: ``backend="auto"`` uses the compiled kernel from this many windows on. Below
+#: it the numpy path takes well under 0.3 s, and a process that only fits short
+#: records never pays the kernel's one-off compilation (~15 s in a fresh
+#: environment, then loaded from numba's cache in well under a second).
+COMPILED_MIN_WINDOWS = 8192
 
 
 @dataclass
@@ -223,13 +233,14 @@ def solve_local_normal_equations(
     rank_columns : int, optional
         Passed to the QR fallback (see :func:`solve_local_least_squares`).
     backend : {"auto", "numpy", "numba"}, default="auto"
-        ``"numba"``: one compiled kernel per window, in parallel over windows
-        (Gram matrix, Cholesky, solves, refinement and variance without
-        batched temporaries; needs the ``fast`` extra, ``pip install
-        numba``); ``"numpy"``: batched array operations; ``"auto"``:
-        ``"numba"`` when it is importable and the environment variable
+        ``"numba"``: the compiled kernel of :mod:`lrmfrf._compiled`, windows
+        in SIMD lanes and threads (Gram matrix, Cholesky, solves, refinement
+        and variance without batched temporaries; needs the ``fast`` extra,
+        ``pip install numba``); ``"numpy"``: batched array operations; ``"auto"``:
+        ``"numba"`` when it is importable, the environment variable
         ``LRMFRF_DISABLE_NUMBA`` is not set to a non-empty value other than
-        ``0``, else ``"numpy"``. Both give the same results up to round-off.
+        ``0`` and there are at least :data:`COMPILED_MIN_WINDOWS` windows,
+        else ``"numpy"``. Both give the same results up to round-off.
 
     Returns
     -------
@@ -240,8 +251,8 @@ def solve_local_normal_equations(
         other columns (use :func:`solve_local_least_squares` for those);
         ``leverage`` is None.
     """
-    backend = resolve_backend(backend)
     slow_bins = np.asarray(slow_bins, dtype=int)
+    backend = resolve_backend(backend, slow_bins.size)
     windows = StructuredWindows(U, Y, slow_bins, layout)
     n_centre = layout.F + layout.n_experiments
     if backend == "numba":
@@ -261,16 +272,24 @@ def solve_local_normal_equations(
     well_posed = fast.copy()
 
     slow = np.flatnonzero(~fast)
-    if slow.size:
-        A, b = local_regressor(U, Y, slow_bins[slow], layout)
+    chunk = qr_chunk_size(layout)
+    for start in range(0, slow.size, chunk):  # bounded memory, however many
+        part = slow[start : start + chunk]
+        A, b = local_regressor(U, Y, slow_bins[part], layout)
         qr = solve_local_least_squares(
             A, b, rank_tol=rank_tol, rank_columns=rank_columns
         )
-        theta[slow] = qr.theta
-        gram_inv_diag[slow] = qr.gram_inv_diag
-        rss[slow] = qr.rss
-        well_posed[slow] = qr.well_posed
+        theta[part] = qr.theta
+        gram_inv_diag[part] = qr.gram_inv_diag
+        rss[part] = qr.rss
+        well_posed[part] = qr.well_posed
     return LocalSolution(theta, gram_inv_diag, rss, well_posed, None)
+
+
+def qr_chunk_size(layout: LocalModelLayout) -> int:
+    """Windows per batch of the QR solver that keep its regressor near
+    :data:`CHUNK_BYTES`."""
+    return max(1, CHUNK_BYTES // (16 * layout.n_equations * layout.n_params))
 
 
 def _normal_equations_numpy(windows, n_centre, fallback_tol, refine_steps):
@@ -316,12 +335,15 @@ def _normal_equations_numpy(windows, n_centre, fallback_tol, refine_steps):
     return theta, rss, centre_var, fast
 
 
-def resolve_backend(backend: str) -> str:
+def resolve_backend(backend: str, n_windows: int | None = None) -> str:
     """Map ``backend`` of :func:`solve_local_normal_equations` to a path.
 
     Parameters
     ----------
     backend : {"auto", "numpy", "numba"}
+    n_windows : int, optional
+        Number of windows of the whole fit. With ``"auto"``, fewer than
+        :data:`COMPILED_MIN_WINDOWS` select ``"numpy"``.
 
     Returns
     -------
@@ -340,7 +362,9 @@ def resolve_backend(backend: str) -> str:
             "backend='auto' or 'numpy'."
         )
     if backend == "auto":
-        return "numba" if _compiled.AVAILABLE and not disabled else "numpy"
+        small = n_windows is not None and n_windows < COMPILED_MIN_WINDOWS
+        use_compiled = _compiled.AVAILABLE and not disabled and not small
+        return "numba" if use_compiled else "numpy"
     return backend
 
 

@@ -467,21 +467,37 @@ class StructuredWindows:
         return np.concatenate(weights, axis=1), np.array(col_base, dtype=np.int64)
 
     def to_layout(self, theta: np.ndarray) -> np.ndarray:
-        """Map internal-basis parameters to monomial coefficients, layout order."""
+        """Map internal-basis parameters to monomial coefficients, layout order.
+
+        Parameters
+        ----------
+        theta : ndarray of shape (B, n_params), complex
+            Internal basis and order.
+
+        Returns
+        -------
+        ndarray of shape (B, n_params), complex
+        """
+        return _times_real(theta, self._to_layout_matrix)
+
+    @cached_property
+    def _to_layout_matrix(self) -> np.ndarray:
+        """Real ``T`` with ``theta_layout = theta_internal @ T`` (it is linear
+        and real: a column permutation, then per-group basis changes)."""
         lay, b = self.layout, self.basis
-        out = np.empty_like(theta)
-        out[:, self.order] = theta
+        T = np.zeros((lay.n_params, lay.n_params))
+        T[np.arange(lay.n_params), self.order] = 1.0
         F = lay.F
         for f in range(F):
             cols = np.arange(lay.num_degree + 1) * F + f
-            out[:, cols] = out[:, cols] @ b.num_to_monomial.T
+            T[:, cols] = T[:, cols] @ b.num_to_monomial.T
         for p in range(lay.n_experiments):
             start = lay.transient_column(p)
             cols = np.arange(start, start + lay.transient_degree + 1)
-            out[:, cols] = out[:, cols] @ b.transient_to_monomial.T
+            T[:, cols] = T[:, cols] @ b.transient_to_monomial.T
         cols = lay.den_columns
-        out[:, cols] = out[:, cols] @ b.den_to_monomial.T
-        return out
+        T[:, cols] = T[:, cols] @ b.den_to_monomial.T
+        return T
 
 
 def _weighted_sums(series: np.ndarray, kernel: np.ndarray) -> np.ndarray:

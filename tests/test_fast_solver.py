@@ -354,3 +354,61 @@ def test_numba_backend_without_numba(monkeypatch, noisy):
     U, Y, layout = noisy
     with pytest.raises(ImportError, match="backend='numba' needs numba"):
         solve_local_normal_equations(U, Y, np.arange(3), layout, backend="numba")
+
+
+def test_auto_backend_compiles_only_for_long_records(monkeypatch):
+    """``auto`` keeps short fits on numpy (no one-off compilation)."""
+    from lrmfrf.solvers import COMPILED_MIN_WINDOWS
+
+    monkeypatch.delenv("LRMFRF_DISABLE_NUMBA", raising=False)
+    assert resolve_backend("auto", COMPILED_MIN_WINDOWS - 1) == "numpy"
+    expected = "numba" if _compiled.AVAILABLE else "numpy"
+    assert resolve_backend("auto", COMPILED_MIN_WINDOWS) == expected
+    assert resolve_backend("numpy", 10**9) == "numpy"
+
+
+def test_qr_fallback_in_bounded_batches(monkeypatch, backend):
+    """Every window failing the fast path (no input in band 2): the QR
+    fallback runs in batches of ``qr_chunk_size`` and flags all of them."""
+    from lrmfrf import solvers
+
+    rng = np.random.default_rng(9)
+    layout = LocalModelLayout(F=3, **PAPER)
+    U = rng.standard_normal((1, 1200)) + 1j * rng.standard_normal((1, 1200))
+    Y = rng.standard_normal((1, 400)) + 1j * rng.standard_normal((1, 400))
+    U[0, 800:] = 0.0
+    bins = np.arange(20, 181)
+    per_window = 16 * layout.n_equations * layout.n_params
+    monkeypatch.setattr(solvers, "CHUNK_BYTES", 7 * per_window)
+    assert solvers.qr_chunk_size(layout) == 7
+    sol = solve_local_normal_equations(U, Y, bins, layout, backend=backend)
+    assert not sol.well_posed.any() and np.isnan(sol.theta).all()
+    # windows that do see band 2 through the periodic wrap are solved, in batches
+    U[0, 800:] = rng.standard_normal(400)
+    U[0, 820:1180] = 0.0
+    bins = np.arange(0, 200, 3)
+    sol = solve_local_normal_equations(U, Y, bins, layout, backend=backend)
+    qr = solve_local_least_squares(*local_regressor(U, Y, bins, layout),
+                                   rank_columns=None)
+    np.testing.assert_array_equal(sol.well_posed, qr.well_posed)
+    ok = qr.well_posed
+    assert 0 < ok.sum() < bins.size
+    np.testing.assert_allclose(sol.theta[ok, :3], qr.theta[ok, :3], rtol=1e-9)
+
+
+def test_compiled_kernel_threads_do_not_change_the_result(noisy):
+    """Each window is computed by the same code whatever thread runs it."""
+    pytest.importorskip("numba")
+    from lrmfrf.solvers import REFINEMENT_TOL, _compiled_tables
+
+    U, Y, layout = noisy
+    weights, col_base, tables = _compiled_tables(layout)
+    bins = np.arange(401)
+    kw = {"fallback_tol": 1e-6, "refine_tol": REFINEMENT_TOL, "refine_steps": 1,
+          "tables": tables}
+    one = _compiled.solve_windows(U, Y, bins, weights, col_base, 3, 4,
+                                  n_threads=1, **kw)
+    two = _compiled.solve_windows(U, Y, bins, weights, col_base, 3, 4,
+                                  n_threads=2, **kw)
+    for a, b in zip(one, two, strict=True):
+        np.testing.assert_array_equal(a, b)
