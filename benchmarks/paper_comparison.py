@@ -252,7 +252,7 @@ def _figures(stage, seed: int) -> None:
         for est in estimators.values():
             est.fit(experiment.u_h, experiment.y_l, 3, sample_time=0.5e-3)
         fig, _ = plot_frf(*estimators.values(), true=system, labels=list(estimators),
-                          title=f"{name}: Table I settings, 45 dB")
+                          title=f"{name}: Table I settings, 45 dB", units="m/N")
         fig.savefig(RESULTS / f"paper_bode_{name}.png", dpi=110)
         plt.close(fig)
         # The system itself as the truth: SA is scored on its own coarse grid.

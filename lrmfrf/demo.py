@@ -211,6 +211,7 @@ def _bode_png(system, estimators, name: str) -> bytes:
     fig, _ = plot_frf(
         *estimators.values(), true=system, labels=list(estimators), std_band=2,
         title=f"{name}: LRM, LPM and SA beyond the slow Nyquist frequency",
+        units="m/N",
     )
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=110)

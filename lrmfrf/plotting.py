@@ -103,6 +103,7 @@ def plot_frf(
     phase: str = "unwrap",
     legend: str = "outside",
     freq_range: tuple[float, float] | None = None,
+    units: str | None = None,
 ):
     """Bode plot (magnitude in dB, phase in degrees) with uncertainty bands.
 
@@ -148,6 +149,9 @@ def plot_frf(
     freq_range : (float, float), optional
         Draw only this band of frequencies in Hz (a zoom, e.g. on one
         resonance); the axis limits then fit the data in the band.
+    units : str, optional
+        Units of ``G`` (e.g. ``"m/N"``): the magnitude axis then reads
+        "Magnitude [dB re 1 m/N]".
 
     Returns
     -------
@@ -236,7 +240,7 @@ def plot_frf(
         mag_ax.set_xlim(low, high)
     _phase_limits(phase_ax, phases, reference_phase, window,
                   wrapped=phase == "wrap")
-    mag_ax.set_ylabel("Magnitude [dB]")
+    mag_ax.set_ylabel(f"Magnitude [dB re 1 {units}]" if units else "Magnitude [dB]")
     phase_ax.set_ylabel("Phase [deg]")
     phase_ax.set_xlabel("Frequency [Hz]")
     if legend != "none":

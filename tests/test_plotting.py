@@ -306,8 +306,9 @@ def test_legend_outside_does_not_cover_the_axes(fitted):
     fig.canvas.draw()
     box = axes[0].get_window_extent()
     assert axes[0].get_legend().get_window_extent().x1 <= box.x1
-    fig, axes = plot_frf(fitted, legend="none")
+    fig, axes = plot_frf(fitted, legend="none", units="m/N")
     assert axes[0].get_legend() is None
+    assert axes[0].get_ylabel() == "Magnitude [dB re 1 m/N]"
 
 
 def test_band_above_the_slow_nyquist_frequency_is_shaded(fitted):
