@@ -466,3 +466,22 @@ def test_progress_enabled_none_follows_the_terminal():
     assert progress_enabled(None, stream=_Stream(False)) is False
     assert progress_enabled(True, stream=_Stream(False)) is True
     assert progress_enabled(None, stream=object()) is False
+
+
+def test_fit_without_matplotlib_writes_the_rest_and_says_why(tmp_path):
+    """matplotlib is optional for `fit`: one warning line with the install hint,
+    the CSV, NPZ and report are written, and the report names the skip."""
+    code = ("import sys; sys.modules['matplotlib'] = None; "
+            "from lrmfrf.cli import main; sys.exit(main(sys.argv[1:]))")
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    done = subprocess.run(
+        [sys.executable, "-c", code, "fit", str(EXAMPLE_CSV), *FIT, "--out", "o"],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300,
+    )
+    assert done.returncode == 0, done.stderr
+    hint = 'bode.png not drawn: matplotlib is missing (pip install "lrmfrf[plot]")'
+    assert done.stderr.strip().splitlines() == [
+        f"lrmfrf: warning: {EXAMPLE_CSV}: {hint}"]
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == [
+        "frf.csv", "frf.npz", "report.txt"]
+    assert hint in (tmp_path / "o" / "report.txt").read_text()

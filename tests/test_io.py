@@ -476,3 +476,29 @@ def test_file_sha256_matches_hashlib(tmp_path):
     path.write_bytes(os.urandom(3000))
     assert file_sha256(path, block_size=1000) == hashlib.sha256(
         path.read_bytes()).hexdigest()
+
+
+def test_shipped_example_is_what_the_script_simulates(tmp_path):
+    """lrmfrf/data holds the output of scripts/make_example_data.py (the
+    package's own simulator): regenerated, it agrees to rounding error."""
+    import importlib.util
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location(
+        "make_example_data", repo / "scripts" / "make_example_data.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    module.make_example(tmp_path)
+    shipped_dir = repo / "lrmfrf" / "data"
+    with np.load(tmp_path / "wafer_stage_example.npz") as new, \
+            np.load(shipped_dir / "wafer_stage_example.npz") as shipped:
+        assert sorted(new.files) == sorted(shipped.files)
+        for key in new.files:
+            np.testing.assert_allclose(new[key], shipped[key], rtol=1e-9,
+                                       atol=1e-9 * np.max(np.abs(shipped[key])))
+    for name in ("wafer_stage_example.csv",):
+        a = read_measurement(tmp_path / name, F=3)
+        b = read_measurement(shipped_dir / name, F=3)
+        np.testing.assert_array_equal(a.u_h, b.u_h)
+        np.testing.assert_allclose(a.y_l, b.y_l, rtol=1e-9)
