@@ -227,22 +227,22 @@ def _degree(x, values):
 
 
 def _solve_range_py(
-    U_re, U_im, Y_re, Y_im, bins, weights, col_base, data_index, F, n_centre,
+    U, Y, bins, weights, col_base, data_index, F, n_centre,
     q_basis, pair_kind, pair_a, pair_b, pair_nd, pair_off,
     ent_ptr, ent_mom, ent_coef, ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef,
-    n_moments, fallback_tol, refine_tol, refine_steps, theta, rss, cvar, fast,
-    first_group, stop_group,
+    n_moments, to_layout, fallback_tol, refine_tol, refine_steps, theta, rss, cvar,
+    fast, first_group, stop_group,
 ):
     """Lane groups ``first_group..stop_group-1`` (one thread's share)."""
-    P = U_re.shape[0]
+    P = U.shape[0]
     L, p = weights.shape
     s = _scratch(F, P, L, p, n_moments, n_centre)
     for group in range(first_group, stop_group):
         _lane_group(
-            U_re, U_im, Y_re, Y_im, bins, group * LANES, weights, col_base,
+            U, Y, bins, group * LANES, weights, col_base,
             data_index, F, n_centre, q_basis, pair_kind, pair_a, pair_b,
             pair_nd, pair_off, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const,
-            rhs_ptr, rhs_mom, rhs_coef, fallback_tol, refine_tol,
+            rhs_ptr, rhs_mom, rhs_coef, to_layout, fallback_tol, refine_tol,
             refine_steps, theta, rss, cvar, fast, s,
         )
 
@@ -273,15 +273,16 @@ def _scratch_py(F, P, L, p, n_moments, n_centre):
 
 
 def _lane_group(
-    U_re, U_im, Y_re, Y_im, bins, first, weights, col_base, data_index, F,
+    U, Y, bins, first, weights, col_base, data_index, F,
     n_centre, q_basis, pair_kind, pair_a, pair_b, pair_nd, pair_off,
     ent_ptr, ent_mom, ent_coef, ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef,
-    fallback_tol, refine_tol, refine_steps, theta, rss, cvar, fast, s,
+    to_layout, fallback_tol, refine_tol, refine_steps, theta, rss, cvar, fast, s,
 ):
     (sr, si, Sr, Si, Er, Ei, Or, Oi, mr, mi, Hr, Hi, gr, gi, xr, xi, dr, di,
      scale2, polyr, polyi, resr, resi, ok, change_num, change_den, k, tr, ti) = s
-    P, N = U_re.shape
-    M = Y_re.shape[1]
+    P = U.shape[0]
+    N = U.shape[1] // 2
+    M = Y.shape[1] // 2
     L, p = weights.shape
     n = L // 2
     B = bins.shape[0]
@@ -293,12 +294,12 @@ def _lane_group(
             for w in range(LANES):
                 j = k[w] + r - n
                 for f in range(F):
-                    idx = (j + f * M) % N
-                    sr[f, q, r, w] = U_re[q, idx]
-                    si[f, q, r, w] = U_im[q, idx]
-                jm = j % M
-                sr[F, q, r, w] = -Y_re[q, jm]
-                si[F, q, r, w] = -Y_im[q, jm]
+                    idx = 2 * ((j + f * M) % N)
+                    sr[f, q, r, w] = U[q, idx]
+                    si[f, q, r, w] = U[q, idx + 1]
+                jm = 2 * (j % M)
+                sr[F, q, r, w] = -Y[q, jm]
+                si[F, q, r, w] = -Y[q, jm + 1]
     # 2. moments of the pair series, by parity
     for t in range(pair_kind.shape[0]):
         a = pair_a[t]
@@ -480,9 +481,14 @@ def _lane_group(
             change_num[w] <= refine_tol * refine_tol * change_den[w]
         )
         if ok[w]:
-            for i in range(p):
-                theta[row, i, 0] = xr[i, w]
-                theta[row, i, 1] = xi[i, w]
+            for j in range(p):
+                accr = 0.0
+                acci = 0.0
+                for i in range(p):
+                    accr += xr[i, w] * to_layout[i, j]
+                    acci += xi[i, w] * to_layout[i, j]
+                theta[row, j, 0] = accr
+                theta[row, j, 1] = acci
             rss[row] = total
             for c in range(n_centre):
                 acc = 0.0
@@ -636,6 +642,7 @@ def solve_windows(
     refine_tol: float,
     refine_steps: int,
     tables: dict | None = None,
+    to_layout: np.ndarray | None = None,
     n_threads: int | None = None,
 ):
     """Solve the local normal equations of every window (compiled, threaded).
@@ -658,6 +665,10 @@ def solve_windows(
     tables : dict, optional
         :func:`moment_tables` of ``weights`` and ``col_base`` (computed when
         not given; they depend on the layout only).
+    to_layout : ndarray of shape (p, p), optional
+        Real ``T``: ``theta`` is returned as ``theta_internal @ T`` (e.g.
+        :attr:`lrmfrf.windows.StructuredWindows.to_layout_matrix`, monomial
+        coefficients in layout order); default the identity.
     n_threads : int, optional
         Threads sharing the windows; default ``numba.config.NUMBA_NUM_THREADS``
         (the number of cores unless the ``NUMBA_NUM_THREADS`` environment
@@ -666,9 +677,10 @@ def solve_windows(
     Returns
     -------
     theta : ndarray of shape (B, p), complex
-        Internal basis and order; NaN where the factorisation failed.
+        ``theta_internal @ to_layout``; NaN where the factorisation failed.
     rss : ndarray of shape (B,)
     centre_var : ndarray of shape (B, n_centre)
+        In the internal order (the last ``n_centre`` internal columns).
     fast : ndarray of shape (B,), bool
         False where the window must be re-solved by QR.
     """
@@ -685,14 +697,16 @@ def solve_windows(
     centre_var = np.empty((B, n_centre))
     fast = np.empty(B, dtype=np.bool_)
     t = tables
+    if to_layout is None:
+        to_layout = np.eye(p)
     args = (
-        np.ascontiguousarray(U.real), np.ascontiguousarray(U.imag),
-        np.ascontiguousarray(Y.real), np.ascontiguousarray(Y.imag),
+        _as_interleaved(U), _as_interleaved(Y),
         np.ascontiguousarray(slow_bins, dtype=np.int64), weights, col_base,
         t["data_index"], int(F), int(n_centre), t["q_basis"], t["pair_kind"],
         t["pair_a"], t["pair_b"], t["pair_nd"], t["pair_off"], t["ent_ptr"],
         t["ent_mom"], t["ent_coef"], t["ent_conj"], t["ent_const"], t["rhs_ptr"],
-        t["rhs_mom"], t["rhs_coef"], int(t["n_moments"]), float(fallback_tol),
+        t["rhs_mom"], t["rhs_coef"], int(t["n_moments"]),
+        np.ascontiguousarray(to_layout, dtype=np.float64), float(fallback_tol),
         float(refine_tol), int(refine_steps), theta, rss, centre_var, fast,
     )
     n_groups = (B + LANES - 1) // LANES
@@ -707,3 +721,10 @@ def solve_windows(
         with ThreadPoolExecutor(threads) as pool:
             list(pool.map(lambda task: _solve_range(*args, *task), tasks))
     return theta.view(np.complex128)[..., 0], rss, centre_var, fast
+
+
+def _as_interleaved(values: np.ndarray) -> np.ndarray:
+    """Complex (P, K) as a float (P, 2K) view, real and imaginary interleaved
+    (no copy for a C-contiguous complex128 array such as an FFT output)."""
+    values = np.ascontiguousarray(values, dtype=np.complex128)
+    return values.view(np.float64)

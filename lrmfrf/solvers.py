@@ -261,14 +261,15 @@ def solve_local_normal_equations(
             U, Y, slow_bins, weights, col_base, layout.F, n_centre,
             fallback_tol=fallback_tol, refine_tol=REFINEMENT_TOL,
             refine_steps=refine_steps, tables=tables,
+            to_layout=windows.to_layout_matrix,
         )
     else:
         theta, rss, centre_var, fast = _normal_equations_numpy(
             windows, n_centre, fallback_tol, refine_steps
         )
+        theta = windows.to_layout(theta)
     gram_inv_diag = np.full((slow_bins.size, layout.n_params), np.nan)
     gram_inv_diag[:, windows.order[-n_centre:]] = centre_var
-    theta = windows.to_layout(theta)
     well_posed = fast.copy()
 
     slow = np.flatnonzero(~fast)

@@ -478,12 +478,13 @@ class StructuredWindows:
         -------
         ndarray of shape (B, n_params), complex
         """
-        return _times_real(theta, self._to_layout_matrix)
+        return _times_real(theta, self.to_layout_matrix)
 
     @cached_property
-    def _to_layout_matrix(self) -> np.ndarray:
-        """Real ``T`` with ``theta_layout = theta_internal @ T`` (it is linear
-        and real: a column permutation, then per-group basis changes)."""
+    def to_layout_matrix(self) -> np.ndarray:
+        """Real ``T`` of shape (n_params, n_params) with ``theta_layout =
+        theta_internal @ T`` (a column permutation, then per-group changes of
+        basis; it depends on the layout only)."""
         lay, b = self.layout, self.basis
         T = np.zeros((lay.n_params, lay.n_params))
         T[np.arange(lay.n_params), self.order] = 1.0
