@@ -239,11 +239,29 @@ def _read_manifest(out: Path, overwrite: bool) -> dict:
         and isinstance(content.get("files"), dict)
     ):
         return {str(k): str(v) for k, v in content["files"].items()}
+    if _is_legacy_manifest(content):  # lrmfrf 0.1 wrote {name: sha256} only
+        return dict(content)
     if overwrite:
         return {}
     raise FileExistsError(
         f"{path}: exists and was not written by lrmfrf demo. Choose another --out "
         "folder, or pass --force (overwrite=True) to replace it."
+    )
+
+
+def _is_legacy_manifest(content) -> bool:
+    names = {f"{kind}_{name}.{ext}" for name in SYSTEMS
+             for kind, ext in (("frf", "csv"), ("bode", "png"))}
+    return (
+        isinstance(content, dict)
+        and bool(content)
+        and all(key in names for key in content)
+        and all(
+            isinstance(value, str)
+            and len(value) == 64
+            and all(c in "0123456789abcdef" for c in value)
+            for value in content.values()
+        )
     )
 
 

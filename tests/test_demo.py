@@ -116,3 +116,17 @@ def test_run_demo_rejects_bad_seed(tmp_path, seed):
     with pytest.raises(ValueError, match="seed must be an integer >= 0"):
         run_demo(tmp_path / "never", seed=seed)
     assert not (tmp_path / "never").exists()
+
+
+def test_manifest_of_the_first_release_is_recognised(tmp_path):
+    """lrmfrf 0.1 wrote the manifest as {name: sha256}: still the demo's own."""
+    import json
+
+    from lrmfrf.io import file_sha256
+
+    run_demo(tmp_path, seed=1, plot=False)
+    files = ["frf_G_y4.csv", "frf_G_z.csv"]
+    legacy = {name: file_sha256(tmp_path / name) for name in files}
+    (tmp_path / MANIFEST).write_text(json.dumps(legacy))
+    run_demo(tmp_path, seed=2, plot=False)
+    assert '"written_by": "lrmfrf demo"' in (tmp_path / MANIFEST).read_text()
