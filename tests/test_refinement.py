@@ -144,6 +144,82 @@ def test_in_class_noise_free_data_unchanged(P):
     assert result.n_guarded == 0
 
 
+def test_in_class_data_unchanged_when_the_iterations_run(monkeypatch):
+    # The test above may pass through the exact-fit shortcut (windows whose
+    # cost is at round-off are not iterated). Disabled, SK re-solves with
+    # weights 1/e of the exact denominator and LM sees a zero gradient: the
+    # exact solution must still come back unchanged.
+    import lrmfrf.refinement as refinement
+
+    monkeypatch.setattr(refinement, "EXACT_FIT_TOL", -1.0)
+    layout = LocalModelLayout(F=F, half_window=12, num_degree=2, transient_degree=2,
+                              den_degree=2)
+    u, y, centres, G = in_class_data(layout, n_slow=200, rng=11)
+    U, Y = np.fft.fft(u, axis=1), np.fft.fft(y, axis=1)
+    closed = fit_local_models(U, Y, layout, slow_bins=centres)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)  # round-off "drops"
+        result = refine_local_models(U, Y, layout, closed, sk_iterations=5,
+                                     lm_iterations=10)
+    assert result.sk_iterations >= 1 and result.lm_iterations >= 1
+    change = np.abs(result.local_fit.theta - closed.theta).max()
+    assert change <= 1e-9 * np.abs(closed.theta).max()
+    assert np.abs(result.local_fit.system - G).max() <= 1e-9 * np.abs(G).max()
+    assert result.n_guarded == 0
+
+
+def _independent_output_error(A, b, theta, layout):
+    """b - num/e computed from scratch (x = r/n, e = 1 + sum_s e_s x^s)."""
+    n = layout.half_window
+    x = np.arange(-n, n + 1) / n
+    den = layout.den_columns
+    e = 1.0 + (x[:, None] ** np.arange(1, layout.den_degree + 1)) @ theta[den]
+    return b - (A[:, : den.start] @ theta[: den.start]) / e
+
+
+@pytest.mark.parametrize("lm", [0, 8])
+def test_refined_std_is_linearised_at_the_final_estimate(stage_data, lm):
+    # frf_std_ after refinement: F^2 [(J^H J)^-1]_ff J_LS / q with J the
+    # Jacobian of the output error at the final estimate (LM), or Lemma 2 on
+    # the regressor reweighted by 1/e of the final estimate (SK only). The
+    # Jacobian here is a central finite difference of an independent
+    # implementation of the output error.
+    d = stage_data
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        est = LRMBeyondNyquist(sk_iterations=4, lm_iterations=lm).fit(d["u"], d["y"], F)
+    layout = est.layout_
+    bins = np.array([7, 64, 150])
+    A, b = local_regressor(d["U"], d["Y"], bins, layout)
+    theta = est.local_fit_.theta[bins]
+    for w in range(bins.size):
+        residual = _independent_output_error(A[w], b[w], theta[w], layout)
+        cost = np.sum(np.abs(residual) ** 2)
+        if lm:
+            J = np.empty(A.shape[1:], dtype=complex)
+            for j in range(layout.n_params):
+                h = 1e-6 * max(abs(theta[w, j]), 1e-3)
+                step = np.zeros(layout.n_params, dtype=complex)
+                step[j] = h
+                plus = _independent_output_error(A[w], b[w], theta[w] + step, layout)
+                minus = _independent_output_error(A[w], b[w], theta[w] - step, layout)
+                J[:, j] = (plus - minus) / (2 * h)
+        else:
+            n = layout.half_window
+            x = np.arange(-n, n + 1) / n
+            e = 1.0 + (x[:, None] ** np.arange(1, layout.den_degree + 1)) @ theta[
+                w, layout.den_columns]
+            J = A[w] / e[:, None]
+        gram_inv = np.linalg.inv(J.conj().T @ J)
+        var = F**2 * np.real(np.diag(gram_inv))[:F] * cost / layout.dof
+        np.testing.assert_allclose(est.local_fit_.system_var[bins[w]], var,
+                                   rtol=1e-5)
+        assert est.local_fit_.rss[bins[w]] == pytest.approx(cost, rel=1e-9)
+    # frf_std_ on the fast grid is the square root of those variances.
+    assert est.frf_std_[bins[0]] == pytest.approx(
+        np.sqrt(est.local_fit_.system_var[bins[0], 0]), rel=1e-12)
+
+
 def test_without_denominator_refinement_is_the_linear_solution():
     # R_e = 0: the cost is linear, SK weights are 1 and LM converges to the
     # closed form; the refined variance is Lemma 2 of the closed form.
@@ -172,6 +248,28 @@ def test_sk_lowers_the_mean_cost_monotonically(stage_sk, stage_data):
     # The SK cost is the closed form's weighted cost first.
     closed = stage_data["closed"]
     assert stage_sk.sk_cost_history[0] == pytest.approx(np.mean(closed.rss))
+
+
+def test_sk_keeps_the_best_iterate_of_each_window(stage_data):
+    # Window by window, the kept SK estimate has an original cost no higher
+    # than the closed form's and than the last raw SK iterate's.
+    d = stage_data
+    layout = d["layout"]
+    closed = d["closed"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        best = refine_local_models(d["U"], d["Y"], layout, closed, sk_iterations=10)
+        raw = refine_local_models(d["U"], d["Y"], layout, closed, sk_iterations=10,
+                                  keep_best=False)
+    A, b = local_regressor(d["U"], d["Y"], closed.slow_bins, layout)
+    cost_closed = output_error_cost(A, b, closed.theta, layout)
+    cost_best = output_error_cost(A, b, best.local_fit.theta, layout)
+    cost_raw = output_error_cost(A, b, raw.local_fit.theta, layout)
+    assert np.all(cost_best <= cost_closed * (1 + 1e-12))
+    assert np.all(cost_best <= cost_raw * (1 + 1e-12))
+    # cost_history is the mean original cost over the windows (eq. meanCosts).
+    assert best.cost_history[0] == pytest.approx(cost_closed.mean(), rel=1e-9)
+    assert best.cost_history[-1] == pytest.approx(cost_best.mean(), rel=1e-9)
 
 
 def test_raw_sk_lowers_the_cost_overall(stage_data):
@@ -271,6 +369,26 @@ def test_convergence_warning_when_iterations_run_out(stage_data):
     with pytest.warns(ConvergenceWarning, match="Increase `sk_iterations`") as record:
         LRMBeyondNyquist(sk_iterations=1).fit(d["u"], d["y"], F)
     assert record[0].filename == __file__  # stacklevel points at the caller
+
+
+def test_iterations_stop_on_convergence():
+    # Every window stops when its relative cost change falls below `tol`:
+    # with generous counts, SK and LM stop early and do not warn; a looser
+    # tolerance stops SK sooner.
+    rng = np.random.default_rng(3)
+    u = multisine(600, rng=rng)
+    y = simulate_resonant(u, F, 0.01, rng)
+    small = {"half_window": 12, "num_degree": 2, "transient_degree": 2,
+             "den_degree": 4}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ConvergenceWarning)
+        warnings.simplefilter("ignore", RefinementGuardWarning)
+        tight = LRMBeyondNyquist(sk_iterations=200, lm_iterations=500, **small).fit(
+            u, y, F)
+        loose = LRMBeyondNyquist(sk_iterations=200, tol=1e-3, **small).fit(u, y, F)
+    assert 1 <= tight.n_sk_iter_ < 200 and 1 <= tight.n_lm_iter_ < 500
+    assert loose.n_sk_iter_ < tight.n_sk_iter_
+    assert tight.cost_history_.shape == (1 + tight.n_sk_iter_ + tight.n_lm_iter_,)
 
 
 def test_guard_warning_and_fallback_to_closed_form(stage_data):
