@@ -110,6 +110,8 @@ def test_grid_search_and_batch_on_a_dask_cluster():
         cv = LRMBeyondNyquistCV(half_windows=(6, 8), num_degrees=(1, 2),
                                 den_degrees=(2,), n_jobs=-1).fit(u[0], y[0], F)
         assert len(client.scheduler_info()["workers"]) == 2
+    # Leaving the context shut the cluster down.
+    assert cluster.status == distributed.core.Status.closed
     np.testing.assert_allclose(search.cv_results_["mean_test_score"],
                                serial_search.cv_results_["mean_test_score"],
                                rtol=1e-12)
