@@ -6,12 +6,16 @@ n = 18), random-phase multisine of RMS 1.44, G_y4 and G_z of the wafer stage,
 realisation: closed form, SK 30, SK 30 + LM 300 with the guard (and, with
 --unguarded, without it). Reports the mean-cost drops (eq. meanCosts), median
 relative FRF errors, guard activations and the per-bin worst case of
-``|G_refined - G| / (10 |G_closed - G| + 10 std_closed)`` (must stay <= 1).
+``|G_refined - G| / (10 |G_closed - G| + 10 std_closed)`` (must stay <= 1),
+with the fast bin where it occurs, and the calibration of ``frf_std_``: the
+median over bins of (median predicted std over realisations) / (Monte-Carlo
+std of the estimate over realisations), for the closed form and each method.
 
-Timing: SK 30 and LM 300 (each from the closed form) for N = 1200, 12000,
-120000 (one record each; time per window and iteration shows the linear
-growth). Wall and CPU (process) time: on a shared machine the CPU time is the
-fairer measure of the code's own cost.
+Timing: SK 30 and LM 300 (each from the closed form) and SK 30 + LM 300 (the
+chain) for N = 1200, 12000, 120000 (one record each; best of ``--repeats``
+for N <= 12000). The last table fits ``time ~ N^a`` between consecutive sizes
+(``a = 1``: linear growth). Wall and CPU (process) time: on a shared machine
+the CPU time is the fairer measure of the code's own cost.
 
 Run:  python benchmarks/refinement.py [--runs 100] [--unguarded]
       python benchmarks/refinement.py --runs 0 --sizes 1200 12000   # timing only
@@ -43,6 +47,11 @@ METHODS = {
     "SK30": {"sk_iterations": 30},
     "SK30+LM300": {"sk_iterations": 30, "lm_iterations": 300},
 }
+TIMED = {
+    "SK30": {"sk_iterations": 30},
+    "LM300": {"lm_iterations": 300},
+    "SK30+LM300": {"sk_iterations": 30, "lm_iterations": 300},
+}
 UNGUARDED = {"SK30+LM300 unguarded": {"sk_iterations": 30, "lm_iterations": 300,
                                       "guard": None, "jump": None}}
 
@@ -62,16 +71,21 @@ def one_realisation(system, G, keep, rng, snr_db, methods):
     std_closed = np.sqrt(one_sided_fast_grid(closed.system_var, n, F, conj=False))
     err_closed = np.abs(G_closed - G)[keep]
     rel = {"closed": float(np.median(err_closed / np.abs(G[keep])))}
-    out = {}
+    out = {"closed": {"frf": G_closed, "std": std_closed}}
     for name, kwargs in methods.items():
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             result = refine_local_models(U, Y, layout, closed, **kwargs)
         G_hat = one_sided_fast_grid(result.local_fit.system, n, F, conj=True)
+        std = np.sqrt(one_sided_fast_grid(result.local_fit.system_var, n, F,
+                                          conj=False))
         err = np.abs(G_hat - G)[keep]
         bound = 10 * err_closed + 10 * std_closed[keep]
         history = result.cost_history
         out[name] = {
+            "frf": G_hat,
+            "std": std,
+            "worst_bin": int(np.flatnonzero(keep)[np.argmax(err / bound)]),
             "median_rel_error": float(np.median(err / np.abs(G[keep]))),
             "worst_ratio": float(np.max(err / bound)),
             "worst_err_over_closed": float(np.max(err / err_closed)),
@@ -88,6 +102,14 @@ def mean_of(results, key):
     return float(np.mean([r[key] for r in results]))
 
 
+def std_calibration(results, keep):
+    """Median over bins of median predicted std / Monte-Carlo std."""
+    frf = np.array([r["frf"] for r in results])[:, keep]
+    predicted = np.median(np.array([r["std"] for r in results])[:, keep], axis=0)
+    mc = np.sqrt(np.mean(np.abs(frf - frf.mean(axis=0)) ** 2, axis=0))
+    return float(np.median(predicted / mc))
+
+
 def accuracy(runs, snr_db, unguarded, seed):
     stage = wafer_stage()
     methods = dict(METHODS, **(UNGUARDED if unguarded else {}))
@@ -98,16 +120,20 @@ def accuracy(runs, snr_db, unguarded, seed):
         keep = np.isfinite(G) & (np.abs(G) > 0)
         keep[0] = False  # DC: double integrator in the loop
         rng = np.random.default_rng(seed)
-        closed_med, per_method = [], {name: [] for name in methods}
+        closed_med, closed_fits = [], []
+        per_method = {name: [] for name in methods}
         for _ in progress(range(runs), enabled=None, desc=system_name):
             med, out = one_realisation(system, G, keep, rng, snr_db, methods)
             closed_med.append(med)
+            closed_fits.append(out["closed"])
             for name in methods:
                 per_method[name].append(out[name])
         closed_med = np.array(closed_med)
+        std_ratio_closed = std_calibration(closed_fits, keep)
         for name in methods:
             res = per_method[name]
             med = np.array([r["median_rel_error"] for r in res])
+            worst_run = int(np.argmax([r["worst_ratio"] for r in res]))
             rows.append({
                 "system": system_name,
                 "method": name,
@@ -122,8 +148,11 @@ def accuracy(runs, snr_db, unguarded, seed):
                 "guarded_per_fit_max": int(np.max([r["n_guarded"] for r in res])),
                 "lm_iter_mean": float(np.mean([r["lm_iter"] for r in res])),
                 "worst_bin_ratio": float(np.max([r["worst_ratio"] for r in res])),
+                "worst_bin_k": res[worst_run]["worst_bin"],
                 "worst_bin_err_over_closed": float(
                     np.max([r["worst_err_over_closed"] for r in res])),
+                "std_over_mc_closed": std_ratio_closed,
+                "std_over_mc": std_calibration(res, keep),
             })
     return rows
 
@@ -138,8 +167,7 @@ def timing(sizes, seed, repeats):
         start = time.perf_counter()
         closed = fit_local_models(U, Y, layout)
         t_closed = time.perf_counter() - start
-        for name, kwargs in (("SK30", {"sk_iterations": 30}),
-                             ("LM300", {"lm_iterations": 300})):
+        for name, kwargs in TIMED.items():
             best, best_cpu = np.inf, np.inf
             for _ in range(repeats if n_samples <= 12000 else 1):
                 with warnings.catch_warnings():
@@ -161,6 +189,24 @@ def timing(sizes, seed, repeats):
                 "us_per_window_iteration": 1e6 * best / windows / max(iters, 1),
             })
     return rows
+
+
+def growth(rows):
+    """Exponent ``a`` of ``time ~ N^a`` between consecutive sizes, per method."""
+    out = []
+    for name in TIMED:
+        mine = [r for r in rows if r["method"] == name]
+        for small, large in zip(mine, mine[1:], strict=False):
+            ratio = np.log(large["N"] / small["N"])
+            out.append({
+                "method": name,
+                "N": f"{small['N']} -> {large['N']}",
+                "exponent_wall": float(np.log(large["refine_wall_s"]
+                                              / small["refine_wall_s"]) / ratio),
+                "exponent_cpu": float(np.log(large["refine_cpu_s"]
+                                             / small["refine_cpu_s"]) / ratio),
+            })
+    return out
 
 
 def print_table(rows):
@@ -207,6 +253,8 @@ def main(argv=None):
         print("## Timing (best of repeats; LM and SK each from the closed form)\n")
         print_table(rows)
         write_csv(rows, "refinement_timing.csv")
+        print("## Growth with N (time ~ N^a; a = 1 is linear)\n")
+        print_table(growth(rows))
 
 
 if __name__ == "__main__":
