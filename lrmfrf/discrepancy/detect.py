@@ -69,6 +69,10 @@ class Calibration:
         Whitened RMS gap of each simulated run, bias and scale applied.
     method : str
         ``"simulation"`` or ``"uncalibrated"``.
+    noise_scale : ndarray of shape (K,) or None
+        Scale of the error of ``G_meas - bias`` (bias not counted, the noise
+        of its ``n_runs``-run estimate counted), for the bias-corrected refit;
+        ``None`` when not calibrated.
     """
 
     bias: np.ndarray
@@ -79,6 +83,7 @@ class Calibration:
     n_runs: int
     null_gaps: np.ndarray
     method: str = "simulation"
+    noise_scale: np.ndarray | None = None
 
     @property
     def std_scale(self) -> float:
@@ -300,6 +305,7 @@ def calibrate(
     return Calibration(
         bias=bias,
         scale=np.sqrt(scale2),
+        noise_scale=np.sqrt(variance * (1.0 + 1.0 / n_runs)),
         inflation=inflation,
         spectrum_shape=shape,
         window=int(window),

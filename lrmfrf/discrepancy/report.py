@@ -76,10 +76,14 @@ class DiagnosisReport:
     findings : list of Finding
         Empty when model and measurement agree within noise.
     gap_before, gap_after : float
-        Whitened RMS gap ``sqrt(mean_k |G_meas - G_model - b|^2 / (kappa std)^2)``
-        of the original and of the updated model (``b``, ``kappa``: estimator
-        bias and std scale from the calibration). About 1 means agreement
-        within noise.
+        Whitened RMS gap ``sqrt(mean_k |G_meas - G_model|^2 / std_k^2)`` of the
+        original and of the updated model, both with the same ``std`` (the
+        attribute below: the estimator std times ``kappa``, its error scale
+        calibrated at the updated model, estimator bias included), so that
+        ``gap_before / gap_after`` is the shrink of the residual. About 1
+        means agreement within noise. The tests of the original model
+        (``p_value_before``, ``spectrum_before``, ``threshold_before``) use
+        its own calibration (``calibration``), the null hypothesis there.
     updated_plant : control.StateSpace
         The plant with the accepted effects, discrete at the fast sample time
         (delays as shift-register states).

@@ -54,6 +54,7 @@ def diagnose(
     calibration: Calibration | None = None,
     window: int = 9,
     band=None,
+    debias_rounds: int = 2,
     random_state=None,
 ) -> DiagnosisReport:
     """Find what is missing from a plant model, given a (slow-rate) measurement.
@@ -62,9 +63,11 @@ def diagnose(
     ``estimator``) is compared with the model; if they differ by more than the
     calibrated noise, effects from the catalogue are fitted to the whitened
     discrepancy, the best is accepted when significant and unambiguous
-    (greedy, up to ``max_effects``), all accepted effects are refitted jointly,
-    and an unnamed low-order model error is fitted when nothing in the
-    catalogue explains the gap.
+    (greedy, up to ``max_effects``), all accepted effects are refitted jointly
+    (then corrected for the estimator's bias, ``debias_rounds``), and an
+    unnamed low-order model error is fitted when nothing in the catalogue
+    explains the gap. ``gap_before`` and ``gap_after`` are measured with the
+    same std, calibrated at the updated model.
 
     Parameters
     ----------
@@ -114,6 +117,13 @@ def diagnose(
     band : (float, float), optional
         Compare only the estimator's bins with ``low <= f <= high`` (Hz), e.g.
         ``(0, slow_nyquist)`` to mimic a slow-rate-only analysis.
+    debias_rounds : int, default=2
+        Rounds of the final, bias-corrected joint refit: the estimator bias
+        calibrated at the updated model (large at sharp resonances, where it
+        flattens the peak) is subtracted from the measurement, the accepted
+        effects are refitted and the bias is recalibrated at the new model.
+        Without it the damping of a 0.8 %-damped mode comes out ~30 % high.
+        ``0`` skips it; it needs ``calibration_runs >= 2``.
     random_state : int, numpy.random.Generator or None
         Seed for the calibration noise.
 
@@ -149,6 +159,7 @@ def diagnose(
     max_effects = _check_int(max_effects, "max_effects", 0)
     calibration_runs = _check_int(calibration_runs, "calibration_runs", 0)
     window = _check_int(window, "window", 1)
+    debias_rounds = _check_int(debias_rounds, "debias_rounds", 0)
     if calibration_runs == 1:
         raise ValueError(
             "`calibration_runs` must be 0 (no calibration) or >= 2 (the spread of "
@@ -192,7 +203,7 @@ def diagnose(
         _check_calibration(cal0, bins.size)
         return _run(problem, nominal, catalogue, calibrator, cal0, plant, controller,
                     alpha=alpha, effect_alpha=effect_alpha, ic_margin=ic_margin,
-                    max_effects=max_effects, F=F)
+                    max_effects=max_effects, debias_rounds=debias_rounds, F=F)
 
 
 # ---------------------------------------------------------------------------
@@ -201,7 +212,7 @@ def diagnose(
 
 
 def _run(problem, nominal, catalogue, calibrator, cal0, plant, controller, *,
-         alpha, effect_alpha, ic_margin, max_effects, F):
+         alpha, effect_alpha, ic_margin, max_effects, debias_rounds, F):
     _set_calibration(problem, cal0)
     w0 = problem.whitened(nominal)
     test0 = global_test(np.abs(w0) ** 2, cal0, alpha)
@@ -222,6 +233,10 @@ def _run(problem, nominal, catalogue, calibrator, cal0, plant, controller, *,
             joint = fit_joint(problem, nominal, accepted, params, context)
             if joint.cost <= problem.cost(current):
                 current, params = joint.plant, joint.params
+            current, params, joint, cal_final = _debias(
+                problem, nominal, accepted, params, current, joint, context,
+                calibrator, cal_final, debias_rounds,
+            )
         findings = [
             _finding(problem, nominal, accepted, params, i, steps[i], joint)
             for i in range(len(accepted))
@@ -236,10 +251,18 @@ def _run(problem, nominal, catalogue, calibrator, cal0, plant, controller, *,
                 current, finding = extra
                 findings.append(finding)
 
+    _set_calibration(problem, cal_final)
     test1 = global_test(np.abs(problem.whitened(current)) ** 2, cal_final, alpha)
+    # Both gaps use one yardstick, the measurement's calibrated std at the
+    # updated model (the best description of the system that made the data).
+    # The nominal calibration is the right null for *testing* the nominal
+    # model, but as a yardstick it counts the estimator bias the nominal
+    # model's sharp modes would cause as noise, also where the data have no
+    # such mode (a shifted mode), and so understates the gap before.
+    gap_before = float(np.sqrt(np.mean(np.abs(problem.whitened(nominal)) ** 2)))
     return DiagnosisReport(
         findings=findings,
-        gap_before=test0.gap,
+        gap_before=gap_before,
         gap_after=test1.gap,
         updated_plant=to_discrete_ss(current, problem.sample_time),
         plant=to_discrete_ss(nominal, problem.sample_time),
@@ -260,8 +283,35 @@ def _run(problem, nominal, catalogue, calibrator, cal0, plant, controller, *,
         calibration_after=cal_final,
         settings={"alpha": alpha, "effect_alpha": effect_alpha,
                   "ic_margin": ic_margin, "max_effects": max_effects,
+                  "debias_rounds": debias_rounds,
                   "calibration_runs": cal0.n_runs, "window": cal0.window},
     )
+
+
+def _debias(problem, nominal, accepted, params, current, joint, context,
+            calibrator, cal, rounds):
+    """Bias-corrected joint refit (a fixed-point iteration).
+
+    Local rational models are biased at sharp resonances by the noise (the
+    estimated peak is flattened), so a fit to the raw FRF overestimates the
+    damping of a lightly damped mode. The calibration at the updated model
+    estimates that bias ``b``; the effects are refitted to ``G_meas - b``
+    (weights: the noise part of the calibrated error only), and ``b`` is
+    recalibrated at the refitted model, ``rounds`` times. The problem is left
+    with the bias counted as error in the scale (the yardstick of the gaps).
+    """
+    for _ in range(rounds):
+        if cal.noise_scale is None:
+            break
+        problem.bias = cal.bias
+        problem.scale = cal.noise_scale
+        refit = fit_joint(problem, nominal, accepted, params, context)
+        if not refit.cost <= problem.cost(current):  # failed refit (or NaN)
+            break
+        current, params, joint = refit.plant, refit.params, refit
+        cal = calibrator(current)
+    _set_calibration(problem, cal)
+    return current, params, joint, cal
 
 
 def _greedy(problem, nominal, catalogue, accepted, params, steps, calibrator, *,
