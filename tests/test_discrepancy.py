@@ -17,7 +17,6 @@ import warnings
 import control
 import numpy as np
 import pytest
-import scipy.stats
 
 from lrmfrf import LRMBeyondNyquist
 from lrmfrf.discrepancy import (
@@ -288,6 +287,74 @@ def test_custom_effect_joins_the_catalogue():
     assert abs(report.findings[0].parameters["scale"] / 1.15 - 1) < 0.02
 
 
+def test_two_hidden_effects_gain_and_low_pass():
+    _, report, result = _run(("gain", "low_pass"), 22)
+    assert result["all_named"], report.summary()
+
+
+def test_shift_of_the_sharpest_mode():
+    # The 235 Hz mode (0.8 % damping, participation 0.06) moved down 4 %. The
+    # LRM estimate flattens so sharp a peak (noise-induced bias), so a fit to
+    # the raw FRF tends to put the damping high (up to +33 % in benchmark
+    # runs); the bias-corrected refit (debias_rounds) reduces that. The
+    # nominal model's calibration would count its own bias at 235 Hz as noise
+    # and understate gap_before ~2x; both gaps use the final calibration.
+    truth = HiddenEffect("mode_shift", {"frequency": 235.0 * 0.96, "damping": 0.008},
+                         {"mode_index": 1})
+    _, report, result = _run((truth,), 51)
+    assert result["exact"] and result["gap_ok"], report.summary()
+    assert result["errors"]["mode_shift.frequency"] < 0.005
+    assert result["errors"]["mode_shift.damping"] < 0.15, result["errors"]
+
+
+def test_equivalent_effects_are_reported_ambiguous():
+    # Two catalogue entries that are the same model change cannot be told
+    # apart: the step is "ambiguous", both are listed, nothing is added.
+    class Scale(Gain):
+        name = "scale"
+
+    truth = HiddenEffect("gain", {"gain": 1.15})
+    _, report, _ = _run((truth,), 32, effects=[Gain(), Scale()])
+    assert report.effects == ["ambiguous"], report.summary()
+    assert "gain" in report.findings[0].description
+    assert "scale" in report.findings[0].description
+    assert report.gap_after == report.gap_before
+    assert _relative(frequency_response(report.updated_plant, FREQS, TS),
+                     frequency_response(report.plant, FREQS, TS)) < 1e-9
+
+
+def test_unnamed_model_error_when_the_catalogue_has_nothing():
+    # An empty catalogue: the hidden 600 Hz low-pass is not named but fitted by
+    # the unnamed second-order model error, which closes the gap.
+    truth = HiddenEffect("low_pass", {"cutoff": 600.0})
+    _, report, result = _run((truth,), 33, effects=[])
+    assert report.effects == ["model_error"], report.summary()
+    assert set(report.findings[0].parameters) == {
+        "zero_frequency", "zero_damping", "pole_frequency", "pole_damping"}
+    assert report.gap_before > 5 and report.gap_after < 1.3
+
+
+def test_open_loop_without_controller():
+    # No controller: the measured system is the plant. A stable, lightly
+    # damped plant (open-loop experiment) given continuous (ZOH-discretised
+    # by diagnose) with a hidden input delay of 0.35 ms = 0.7 samples.
+    Ts = 0.5e-3
+    w = 2 * np.pi * 300.0
+    model = control.tf([w**2], [1.0, 2 * 0.05 * w, w**2])
+    truth = _lifted_zoh(control.ss(model), Ts, 0.35e-3)
+    rng = np.random.default_rng(8)
+    u = np.stack([multisine(1200, rms=1.0, rng=rng) for _ in range(2)])
+    y = np.stack([simulate(truth, ui, 3, snr_db=40, rng=rng).y_l for ui in u])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        report = diagnose(model, u, y, 3, sample_time=Ts, calibration_runs=6,
+                          random_state=8)
+    assert not report.closed_loop
+    assert report.effects == ["delay"], report.summary()
+    assert abs(report.findings[0].parameters["delay"] / 0.35e-3 - 1) < 0.05
+    assert report.gap_after <= 1.3 and report.gap_before / report.gap_after >= 3
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", ["gain", "delay", "low_pass", "missing_mode",
                                   "mode_shift"])
@@ -333,6 +400,11 @@ def test_report_contents(delay_report):
     seen = G / (1 + C * G)
     gap = np.sqrt(np.mean(np.abs(report.measured - seen) ** 2 / report.std**2))
     assert math.isclose(gap, report.gap_after, rel_tol=1e-6)
+    # gap_before: the original model, measured with the same std
+    G0 = frequency_response(report.plant, report.frequencies, TS)
+    seen0 = G0 / (1 + C * G0)
+    gap0 = np.sqrt(np.mean(np.abs(report.measured - seen0) ** 2 / report.std**2))
+    assert math.isclose(gap0, report.gap_before, rel_tol=1e-6)
 
 
 def test_report_summary_and_json(delay_report):
@@ -402,6 +474,12 @@ def test_continuous_controller(stage, small_data):
         _call(stage, *small_data, controller=control.tf([1.0], [1.0, 1.0]))
 
 
+def test_controller_with_wrong_sample_time(stage, small_data):
+    controller = control.ss(*control.ssdata(stage.controller), 1e-3)
+    with pytest.raises(ValueError, match="`controller` has dt=0.001 s"):
+        _call(stage, *small_data, controller=controller)
+
+
 def test_data_shorter_than_the_estimator_needs(stage):
     u = multisine(60, rng=0)
     y = simulate(stage.G_y4, u, 3).y_l
@@ -464,6 +542,7 @@ def test_uncalibrated_fallback_warns_without_noise_estimate(stage, small_data):
         ({"effect_alpha": "x"}, TypeError, "`effect_alpha` must be a probability"),
         ({"calibration_runs": 1}, ValueError, "`calibration_runs` must be 0"),
         ({"max_effects": -1}, ValueError, "`max_effects` must be an integer >= 0"),
+        ({"debias_rounds": 1.5}, TypeError, "`debias_rounds` must be an integer"),
         ({"ic_margin": -2.0}, ValueError, "`ic_margin` must be a finite number"),
         ({"sample_time": 0.0}, ValueError, "`sample_time` must be a positive"),
         ({"effects": ["gain"]}, TypeError, "`effects` must hold Effect instances"),
@@ -486,9 +565,10 @@ def test_inputs_are_not_modified(stage, small_data):
 
 
 def test_effect_base_class_is_abstract():
-    context = None
-    with pytest.raises(NotImplementedError):
-        Effect().initial_guesses(context)
     plant = ContinuousPlant(np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0)),
                             np.ones((1, 1)))
-    assert scipy.stats is not None and plant.n_states == 0
+    effect = Effect()
+    for call in (lambda: effect.initial_guesses(None), lambda: effect.bounds(None),
+                 lambda: effect.apply(plant, {})):
+        with pytest.raises(NotImplementedError):
+            call()
