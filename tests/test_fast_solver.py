@@ -412,3 +412,28 @@ def test_compiled_kernel_threads_do_not_change_the_result(noisy):
                                   n_threads=2, **kw)
     for a, b in zip(one, two, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize(
+    "F, P, n, degrees",
+    [(1, 1, 18, (4, 4, 7)), (5, 3, 6, (1, 0, 2)), (10, 1, 45, (6, 6, 8)),
+     (2, 3, 12, (0, 3, 5))],
+)
+def test_backends_agree_across_layouts(F, P, n, degrees):
+    """Single-rate, many bands, several experiments, zero degrees, and windows
+    short enough that the moment expansion needs the full window basis."""
+    pytest.importorskip("numba")
+    rng = np.random.default_rng(F + 10 * P)
+    layout = LocalModelLayout(F, n, *degrees, n_experiments=P)
+    M = max(layout.window, 60)
+    U = rng.standard_normal((P, F * M)) + 1j * rng.standard_normal((P, F * M))
+    Y = rng.standard_normal((P, M)) + 1j * rng.standard_normal((P, M))
+    bins = np.arange(M)
+    fast = solve_local_normal_equations(U, Y, bins, layout, backend="numba")
+    slow = solve_local_normal_equations(U, Y, bins, layout, backend="numpy")
+    assert slow.well_posed.all()
+    np.testing.assert_array_equal(fast.well_posed, slow.well_posed)
+    np.testing.assert_allclose(fast.theta, slow.theta, rtol=1e-10, atol=0)
+    np.testing.assert_allclose(fast.rss, slow.rss, rtol=1e-10)
+    np.testing.assert_allclose(fast.gram_inv_diag, slow.gram_inv_diag, rtol=1e-8,
+                               equal_nan=True)
