@@ -12,9 +12,14 @@ at N = 1200 one fit takes ~50 ms and per-task overhead shows):
 
 Each is timed serially, with joblib's process backend (n_jobs=2) and on a
 ``distributed.LocalCluster`` (2 worker processes, 1 thread each) through
-``joblib.parallel_config(backend="dask")``. Pools are warmed up first, so the
-times exclude worker start-up (reported separately). The machine's core count
-bounds the speed-up.
+``joblib.parallel_config(backend="dask")``, twice: with distributed's default
+worker environment, and with ``MALLOC_TRIM_THRESHOLD_`` removed from it (see
+``lrmfrf.parallel``: distributed sets it to 65536 for every worker, which
+disables glibc's adaptive mmap threshold, so every large temporary array of a
+fit is a fresh mmap and page-faults; a fit then costs about 2.3x the CPU).
+Workers are warmed up with one small fit first, so the times exclude worker
+start-up and imports (reported separately). The machine's core count, and the
+other processes running on it (report ``uptime``), bound the speed-up.
 
 Run:  python3 benchmarks/scaleout.py [--n-samples 6000]
 Writes benchmarks/results/scaleout.csv.
@@ -77,41 +82,72 @@ def timed(fn) -> float:
     return time.perf_counter() - start
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--n-samples", type=int, default=6000)
-    N = parser.parse_args().n_samples
-    warnings.simplefilter("ignore")
-    rows = []
-    serial = {name: timed(fn) for name, fn in workloads(1, N).items()}
+def small_fit() -> None:
+    """One small fit: imports lrmfrf and its dependencies in a worker."""
+    import warnings
 
-    start = time.perf_counter()
-    joblib.Parallel(n_jobs=2)(joblib.delayed(abs)(i) for i in range(4))  # warm-up
-    loky_start = time.perf_counter() - start
-    loky = {name: timed(fn) for name, fn in workloads(2, N).items()}
+    from lrmfrf.estimators import LRMBeyondNyquist
+    from lrmfrf.signals import multisine
 
+    u = multisine(600, rng=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        LRMBeyondNyquist(half_window=9, num_degree=1, transient_degree=1,
+                         den_degree=2).fit(u, u[::F], F)
+
+
+def on_dask(N, *, default_environ: bool):
+    """Start-up time and workload times on a 2-worker LocalCluster."""
+    import dask
     from distributed import Client, LocalCluster
 
+    key = "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_"
+    config = {} if default_environ else {key: None}
     start = time.perf_counter()
     with (
+        dask.config.set(config),
         LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                      host="127.0.0.1", dashboard_address=None) as cluster,
         Client(cluster) as client,
         joblib.parallel_config(backend="dask"),
     ):
-        client.run(lambda: __import__("lrmfrf.estimators.selection"))  # warm-up
-        dask_start = time.perf_counter() - start
-        dask = {name: timed(fn) for name, fn in workloads(-1, N).items()}
+        client.run(small_fit)  # warm-up on every worker
+        startup = time.perf_counter() - start
+        times = {name: timed(fn) for name, fn in workloads(-1, N).items()}
+    return startup, times
 
-    print(f"N = {N}. Wall time in s on {os.cpu_count()} cores (start-up excluded: "
-          f"loky {loky_start:.1f} s, Dask LocalCluster {dask_start:.1f} s)")
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--n-samples", type=int, default=6000)
+    N = parser.parse_args().n_samples
+    warnings.simplefilter("ignore")
+    small_fit()
+    serial = {name: timed(fn) for name, fn in workloads(1, N).items()}
+
+    start = time.perf_counter()
+    joblib.Parallel(n_jobs=2)(joblib.delayed(small_fit)() for _ in range(4))
+    loky_start = time.perf_counter() - start
+    loky = {name: timed(fn) for name, fn in workloads(2, N).items()}
+
+    dask_start, dask = on_dask(N, default_environ=False)
+    dask0_start, dask0 = on_dask(N, default_environ=True)
+
+    print(f"N = {N}. Wall time in s on {os.cpu_count()} cores (start-up and warm-up "
+          f"excluded: loky {loky_start:.1f} s, Dask LocalCluster {dask_start:.1f} s "
+          f"/ {dask0_start:.1f} s)")
+    print("dask x2: MALLOC_TRIM_THRESHOLD_ unset; dask x2 default: distributed's "
+          "default worker environment. Speed-up = serial / parallel.")
     print(f"{'workload':46s}{'serial':>8s}{'n_jobs=2':>10s}{'dask x2':>9s}"
-          f"{'speed-up':>10s}")
+          f"{'dask x2 default':>17s}{'speed-up (n_jobs / dask / default)':>36s}")
+    rows = []
     for name in serial:
         print(f"{name:46s}{serial[name]:8.2f}{loky[name]:10.2f}{dask[name]:9.2f}"
-              f"{serial[name] / loky[name]:6.2f} /{serial[name] / dask[name]:5.2f}")
+              f"{dask0[name]:17.2f}{serial[name] / loky[name]:16.2f} /"
+              f"{serial[name] / dask[name]:5.2f} /{serial[name] / dask0[name]:5.2f}")
         rows.append({"workload": name, "n_samples": N, "serial_s": serial[name],
-                     "loky_2_s": loky[name], "dask_2_s": dask[name]})
+                     "loky_2_s": loky[name], "dask_2_s": dask[name],
+                     "dask_2_default_environ_s": dask0[name]})
     out = pathlib.Path(__file__).parent / "results"
     out.mkdir(exist_ok=True)
     with open(out / "scaleout.csv", "w", newline="") as fh:

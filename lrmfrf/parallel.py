@@ -11,11 +11,15 @@ backend decides where the work runs:
   ``sklearn.model_selection.GridSearchCV`` and the ``n_jobs`` of
   :class:`~lrmfrf.estimators.selection.LRMBeyondNyquistCV`::
 
+      import dask
       import joblib
       from distributed import Client, LocalCluster
 
-      with LocalCluster(n_workers=2, threads_per_worker=1,
-                        dashboard_address=None) as cluster, Client(cluster):
+      # Keep glibc's adaptive mmap threshold in the workers (see below).
+      unset = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}
+      with dask.config.set(unset), LocalCluster(
+          n_workers=2, threads_per_worker=1, dashboard_address=None
+      ) as cluster, Client(cluster):
           with joblib.parallel_config(backend="dask"):
               fitted = fit_many(LRMBeyondNyquist(), U_records, Y_records, F=3,
                                 n_jobs=-1)
@@ -25,6 +29,17 @@ backend decides where the work runs:
   For a remote cluster pass its scheduler address to ``Client(...)`` instead
   of a ``LocalCluster``; the workers need ``lrmfrf`` installed. Dask is an
   optional dependency (``pip install lrmfrf[dask]``).
+
+  **Worker memory setting.** ``distributed`` starts every worker with
+  ``MALLOC_TRIM_THRESHOLD_=65536`` (its ``distributed.nanny.pre-spawn-environ``
+  configuration). Setting it disables glibc's adaptive mmap threshold, so each
+  large temporary array of a fit is a fresh ``mmap`` whose pages fault in
+  again; a fit then costs about 2.3x the CPU time (measured at N = 6000:
+  0.12 s instead of 0.05 s). Setting the key to ``None`` as above (for
+  workers started with ``dask worker``: ``MALLOC_TRIM_THRESHOLD_: null`` under
+  ``distributed.nanny.pre-spawn-environ`` in their Dask configuration)
+  restores the speed, at the price of workers returning freed memory to the
+  operating system less eagerly. ``benchmarks/scaleout.py`` times both.
 
 Each task sends one record pair and returns one fitted estimator (its FRF
 arrays are ``O(N)``), so the traffic per task is small compared with the

@@ -97,7 +97,13 @@ def test_grid_search_and_batch_on_a_dask_cluster():
     serial_batch = fit_many(LRMBeyondNyquist(**SMALL), u, y, F)
     serial_cv = LRMBeyondNyquistCV(half_windows=(6, 8), num_degrees=(1, 2),
                                    den_degrees=(2,)).fit(u[0], y[0], F)
+    import dask
+
+    # The documented setting of lrmfrf.parallel (workers keep glibc's
+    # adaptive mmap threshold); it changes speed, not results.
+    unset = {"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}
     with (
+        dask.config.set(unset),
         # Two worker processes on the loopback interface only, no dashboard.
         distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                  host="127.0.0.1", dashboard_address=None) as cluster,
@@ -110,6 +116,9 @@ def test_grid_search_and_batch_on_a_dask_cluster():
         cv = LRMBeyondNyquistCV(half_windows=(6, 8), num_degrees=(1, 2),
                                 den_degrees=(2,), n_jobs=-1).fit(u[0], y[0], F)
         assert len(client.scheduler_info()["workers"]) == 2
+        environ = client.run(lambda: __import__("os").environ.get(
+            "MALLOC_TRIM_THRESHOLD_"))
+        assert list(environ.values()) == [None, None]
     # Leaving the context shut the cluster down.
     assert cluster.status == distributed.core.Status.closed
     np.testing.assert_allclose(search.cv_results_["mean_test_score"],
