@@ -437,3 +437,26 @@ def test_backends_agree_across_layouts(F, P, n, degrees):
     np.testing.assert_allclose(fast.rss, slow.rss, rtol=1e-10)
     np.testing.assert_allclose(fast.gram_inv_diag, slow.gram_inv_diag, rtol=1e-8,
                                equal_nan=True)
+
+
+def test_benchmark_data_matches_per_bin_qr():
+    """The speed benchmark's data (wafer stage G_y4, 45 dB, F = 3, paper
+    degrees), long enough that ``auto`` takes the compiled kernel when numba
+    is installed: the estimator's G agrees with per-bin QR to 1e-6 (issue 7)."""
+    from lrmfrf import LRMBeyondNyquist
+    from lrmfrf.plants import wafer_stage
+    from lrmfrf.simulate import simulate
+    from lrmfrf.solvers import COMPILED_MIN_WINDOWS
+
+    rng = np.random.default_rng(21)
+    F, N = 3, 60_000
+    u = multisine(N, rng=rng)
+    y = simulate(wafer_stage().G_y4, u, F, snr_db=45.0, rng=rng).y_l
+    est = LRMBeyondNyquist().fit(u, y, F)
+    assert est.local_fit_.slow_bins.size >= COMPILED_MIN_WINDOWS
+    layout = LocalModelLayout(F=F, **PAPER)
+    U, Y = np.fft.fft(u)[None], np.fft.fft(y)[None]
+    bins = np.linspace(0, N // F // 2, 120).astype(int)
+    theta, _ = per_bin_qr(U, Y, layout, bins)
+    np.testing.assert_allclose(est.local_fit_.system[bins], F * theta[:, :F],
+                               rtol=1e-6)
