@@ -511,13 +511,14 @@ def _sanathanan_koerner(state: _ChunkState, iterations: int, closed_rss, keep_be
     sk_cost = closed_rss.copy()
     sk_sums = [float(np.sum(sk_cost))]
     oe_sums = [float(np.sum(state.cost))]
+    A_adjoint = np.ascontiguousarray(state.A.conj().transpose(0, 2, 1))
     for _ in range(iterations):
         idx = np.flatnonzero(active)
         if idx.size == 0:
             break
         A, b = _take(state.A, idx), _take(state.b, idx)
         w = 1.0 / e_prev[idx]
-        trial, rss, solved = _weighted_solve(A * w[:, :, None], b * w)
+        trial, rss, solved = _weighted_solve(A, _take(A_adjoint, idx), b, w)
         trial_cost = output_error_cost(A, b, trial, layout)
         failed = ~solved | ~np.isfinite(trial_cost)
         rejected = ~failed & state.rejected(idx, trial)
@@ -547,38 +548,51 @@ def _take(array, idx):
     return array if idx.size == array.shape[0] else array[idx]
 
 
-def _weighted_solve(A, b):
-    """SK step: ``argmin ||b - A theta||`` for well-posed windows, fast.
+def _weighted_solve(A, A_adjoint, b, w):
+    """SK step: ``argmin ||w (b - A theta)||`` for well-posed windows, fast.
 
     Equilibrated normal equations with one step of iterative refinement on
     the explicit residual (semi-normal equations): the reweighted problem
     has the rank of the closed-form one (the weights are finite and
     nonzero), so no rank test is needed, and refinement recovers the digits
     lost to squaring the condition number (about 4e5 after equilibration).
+    The weights enter the normal equations directly (``A^H |w|^2 A``), and
+    the column norms of ``w A`` are the square roots of its diagonal.
     Windows whose normal matrix cannot be factorised are solved by QR
     (:func:`lrmfrf.solvers.solve_local_least_squares`).
+
+    Parameters
+    ----------
+    A : ndarray of shape (B, n_equations, n_params)
+    A_adjoint : ndarray of shape (B, n_params, n_equations)
+        ``conj(A)`` transposed (the same for every iteration).
+    b : ndarray of shape (B, n_equations)
+    w : ndarray of shape (B, n_equations)
+        Row weights ``1 / e_prev(r)``.
 
     Returns
     -------
     theta : ndarray of shape (B, n_params)
     rss : ndarray of shape (B,)
+        Weighted residual sum of squares.
     solved : ndarray of shape (B,), bool
     """
-    norms = np.linalg.norm(A, axis=1)
-    norms = np.where(norms > 0, norms, 1.0)
-    A_eq = A / norms[:, None, :]
-    A_H = A_eq.conj().transpose(0, 2, 1)
-    gram = A_H @ A_eq
+    weighted_adjoint = A_adjoint * (w.real**2 + w.imag**2)[:, None, :]
+    gram = weighted_adjoint @ A
+    scale = np.sqrt(np.abs(np.diagonal(gram, axis1=1, axis2=2).real))
+    scale = np.where(scale > 0, scale, 1.0)[:, :, None]
+    gram /= scale
+    gram /= scale.transpose(0, 2, 1)
     try:
-        z = np.linalg.solve(gram, (A_H @ b[:, :, None]))
-        residual = b[:, :, None] - A_eq @ z
-        z = z + np.linalg.solve(gram, A_H @ residual)
+        z = np.linalg.solve(gram, (weighted_adjoint @ b[:, :, None]) / scale)
+        residual = b[:, :, None] - A @ (z / scale)
+        z += np.linalg.solve(gram, (weighted_adjoint @ residual) / scale)
     except np.linalg.LinAlgError:
-        sol = solve_local_least_squares(A, b)
+        sol = solve_local_least_squares(A * w[:, :, None], b * w)
         return sol.theta, sol.rss, sol.well_posed
-    theta = z[:, :, 0] / norms
-    residual = b - (A_eq @ z)[:, :, 0]
-    rss = np.sum(np.abs(residual) ** 2, axis=1)
+    theta = (z / scale)[:, :, 0]
+    residual = w * (b - (A @ theta[:, :, None])[:, :, 0])
+    rss = np.sum(residual.real**2 + residual.imag**2, axis=1)
     return theta, rss, np.isfinite(theta).all(axis=1)
 
 
