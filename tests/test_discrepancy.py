@@ -355,6 +355,44 @@ def test_open_loop_without_controller():
     assert report.gap_after <= 1.3 and report.gap_before / report.gap_after >= 3
 
 
+def test_redundant_effect_is_pruned_after_the_joint_refit(nominal):
+    # A gain accepted early (standing in for something found later) that the
+    # joint model no longer needs (gain 1, drop-one p ~ 1) is removed; the
+    # delay that explains the data is kept and refitted.
+    from lrmfrf.discrepancy.effects import Delay
+    from lrmfrf.discrepancy.fit import FitProblem
+    from lrmfrf.discrepancy.workflow import _context, _prune
+
+    rng = np.random.default_rng(4)
+    truth = Delay().apply(nominal, {"delay": 0.3e-3})
+    G = discrete_response(truth, FREQS, TS)
+    std = 0.01 * np.abs(G)
+    noise = std * (rng.standard_normal(FREQS.size)
+                   + 1j * rng.standard_normal(FREQS.size)) / np.sqrt(2)
+    problem = FitProblem(frequencies=FREQS, measured=G + noise, std=std,
+                         sample_time=TS, controller=None,
+                         bias=np.zeros(FREQS.size, complex),
+                         scale=np.ones(FREQS.size), inflation=1.0)
+    accepted = [Gain(), Delay()]
+    params = [{"gain": 1.0}, {"delay": 0.29e-3}]
+    steps = [{"name": "gain"}, {"name": "delay"}]
+    cal = uncalibrated(FREQS.size)
+    context = _context(problem, nominal, cal)
+    current, params, _ = _prune(problem, nominal, accepted, params, steps,
+                                nominal, None, context, 1e-3)
+    assert [e.name for e in accepted] == ["delay"]
+    assert steps == [{"name": "delay"}]
+    assert abs(params[0]["delay"] / 0.3e-3 - 1) < 1e-3
+    # an effect that is needed is never pruned
+    accepted = [Gain(), Delay()]
+    params = [{"gain": 1.1}, {"delay": 0.3e-3}]
+    truth2 = Gain().apply(truth, {"gain": 1.1})
+    problem.measured = discrete_response(truth2, FREQS, TS) + 1.1 * noise
+    _prune(problem, nominal, accepted, params, [{}, {}], nominal, None, context,
+           1e-3)
+    assert [e.name for e in accepted] == ["gain", "delay"]
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", ["gain", "delay", "low_pass", "missing_mode",
                                   "mode_shift"])

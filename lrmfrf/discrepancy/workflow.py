@@ -233,6 +233,9 @@ def _run(problem, nominal, catalogue, calibrator, cal0, plant, controller, *,
             joint = fit_joint(problem, nominal, accepted, params, context)
             if joint.cost <= problem.cost(current):
                 current, params = joint.plant, joint.params
+            current, params, joint = _prune(problem, nominal, accepted, params,
+                                            steps, current, joint, context,
+                                            effect_alpha)
             current, params, joint, cal_final = _debias(
                 problem, nominal, accepted, params, current, joint, context,
                 calibrator, cal_final, debias_rounds,
@@ -451,9 +454,32 @@ def _unexplained(problem, nominal, accepted, params, current, cal, effect_alpha)
     return fit.plant, finding
 
 
-def _finding(problem, nominal, accepted, params, index, step, joint) -> Finding:
-    """Finding with drop-one evidence: the model without this effect vs with."""
-    effect = accepted[index]
+def _prune(problem, nominal, accepted, params, steps, current, joint, context,
+           effect_alpha):
+    """Drop accepted effects the joint model no longer needs.
+
+    An effect accepted early can stand in for one found later (e.g. a gain
+    absorbing part of a still unmodelled mode); after the joint refit it is
+    then about the identity. Backward elimination: while some effect's
+    drop-one likelihood-ratio p-value (the others held at their values, so it
+    errs towards keeping) is at least ``effect_alpha``, the least significant
+    is removed and the rest refitted. A single effect is always kept (it was
+    accepted against the model without it).
+    """
+    while len(accepted) > 1:
+        p_values = [_drop_one(problem, nominal, accepted, params, i)[1]
+                    for i in range(len(accepted))]
+        worst = int(np.argmax(p_values))
+        if p_values[worst] < effect_alpha:
+            break
+        del accepted[worst], params[worst], steps[worst]
+        joint = fit_joint(problem, nominal, accepted, params, context)
+        current, params = joint.plant, joint.params
+    return current, params, joint
+
+
+def _drop_one(problem, nominal, accepted, params, index):
+    """LR statistic, p-value and whitened residuals without / with one effect."""
     full = apply_all(nominal, accepted, params)
     others = [e for j, e in enumerate(accepted) if j != index]
     other_params = [p for j, p in enumerate(params) if j != index]
@@ -461,8 +487,16 @@ def _finding(problem, nominal, accepted, params, index, step, joint) -> Finding:
     w_full, w_without = problem.whitened(full), problem.whitened(without)
     statistic, p_value = likelihood_ratio_p(
         problem, float(np.sum(np.abs(w_without) ** 2)),
-        float(np.sum(np.abs(w_full) ** 2)), len(effect.all_names),
+        float(np.sum(np.abs(w_full) ** 2)), len(accepted[index].all_names),
     )
+    return statistic, p_value, w_without, w_full
+
+
+def _finding(problem, nominal, accepted, params, index, step, joint) -> Finding:
+    """Finding with drop-one evidence: the model without this effect vs with."""
+    effect = accepted[index]
+    statistic, p_value, w_without, w_full = _drop_one(problem, nominal, accepted,
+                                                      params, index)
     intervals = _intervals(joint, index, effect) if joint is not None else {}
     return Finding(
         effect=effect.name,
