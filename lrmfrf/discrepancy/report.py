@@ -94,8 +94,8 @@ class DiagnosisReport:
     measured, std : ndarray of shape (K,)
         Measured FRF (complex) and its calibrated std ``kappa * std``.
     model_before, model_after : ndarray of shape (K,), complex
-        Model FRFs of the measured system (closed loop if a controller), as the
-        estimator would see them (bias added).
+        Model FRFs of the measured system (closed loop if a controller); the
+        estimator bias is not added (it is counted in ``std``).
     spectrum_before, spectrum_after : ndarray of shape (K,)
         Discrepancy spectrum (moving mean of the whitened squared residual).
     threshold_before, threshold_after : float
