@@ -148,7 +148,7 @@ def fit_local_models(
         :func:`lrmfrf.solvers.solve_local_normal_equations`): ``"auto"`` uses
         the compiled kernel when numba is installed, ``LRMFRF_DISABLE_NUMBA``
         is not set and there are enough windows to pay for it
-        (:data:`lrmfrf.solvers.COMPILED_MIN_WINDOWS`). Ignored by ``"qr"``.
+        (:data:`lrmfrf.solvers.COMPILED_MIN_WORK`). Ignored by ``"qr"``.
 
     Returns
     -------
@@ -160,7 +160,7 @@ def fit_local_models(
         slow_bins = half_slow_bins(M)
     slow_bins = np.asarray(slow_bins, dtype=int)
     solver = _check_solver(solver, return_leverage)
-    backend = resolve_backend(backend, slow_bins.size)
+    backend = resolve_backend(backend, slow_bins.size, layout.n_params)
     if chunk_size is None:
         # the compiled kernel keeps no batched temporaries (and batches its QR
         # fallback itself): one call for all windows

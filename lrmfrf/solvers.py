@@ -46,11 +46,13 @@ CHUNK_BYTES = 2**26
 #: Implementations of :func:`solve_local_normal_equations`.
 BACKENDS = ("auto", "numpy", "numba")
 
-#: ``backend="auto"`` uses the compiled kernel from this many windows on. Below
-#: it the numpy path takes well under 0.3 s, and a process that only fits short
-#: records never pays the kernel's one-off compilation (~15 s in a fresh
-#: environment, then loaded from numba's cache in well under a second).
-COMPILED_MIN_WINDOWS = 8192
+#: ``backend="auto"`` uses the compiled kernel when ``n_windows * n_params**2``
+#: reaches this (8192 windows at the paper's 27 parameters; the numpy path's
+#: cost per window grows about as ``n_params**2``). Below it the numpy path takes
+#: well under 0.5 s, and a process that only fits short records never pays the
+#: kernel's one-off compilation (~15-30 s in a fresh environment, then loaded
+#: from numba's cache in ~0.3 s).
+COMPILED_MIN_WORK = 8192 * 27**2
 
 
 @dataclass
@@ -239,8 +241,9 @@ def solve_local_normal_equations(
         ``pip install numba``); ``"numpy"``: batched array operations; ``"auto"``:
         ``"numba"`` when it is importable, the environment variable
         ``LRMFRF_DISABLE_NUMBA`` is not set to a non-empty value other than
-        ``0`` and there are at least :data:`COMPILED_MIN_WINDOWS` windows,
-        else ``"numpy"``. Both give the same results up to round-off.
+        ``0`` and the problem is large enough to pay for it
+        (:data:`COMPILED_MIN_WORK`), else ``"numpy"``. Both give the same
+        results up to round-off.
 
     Returns
     -------
@@ -252,7 +255,7 @@ def solve_local_normal_equations(
         ``leverage`` is None.
     """
     slow_bins = np.asarray(slow_bins, dtype=int)
-    backend = resolve_backend(backend, slow_bins.size)
+    backend = resolve_backend(backend, slow_bins.size, layout.n_params)
     windows = StructuredWindows(U, Y, slow_bins, layout)
     n_centre = layout.F + layout.n_experiments
     if backend == "numba":
@@ -336,15 +339,19 @@ def _normal_equations_numpy(windows, n_centre, fallback_tol, refine_steps):
     return theta, rss, centre_var, fast
 
 
-def resolve_backend(backend: str, n_windows: int | None = None) -> str:
+def resolve_backend(
+    backend: str, n_windows: int | None = None, n_params: int = 27
+) -> str:
     """Map ``backend`` of :func:`solve_local_normal_equations` to a path.
 
     Parameters
     ----------
     backend : {"auto", "numpy", "numba"}
     n_windows : int, optional
-        Number of windows of the whole fit. With ``"auto"``, fewer than
-        :data:`COMPILED_MIN_WINDOWS` select ``"numpy"``.
+        Number of windows of the whole fit. With ``"auto"``, ``n_windows *
+        n_params**2`` below :data:`COMPILED_MIN_WORK` selects ``"numpy"``.
+    n_params : int, default=27
+        Parameters of one local problem.
 
     Returns
     -------
@@ -363,7 +370,7 @@ def resolve_backend(backend: str, n_windows: int | None = None) -> str:
             "backend='auto' or 'numpy'."
         )
     if backend == "auto":
-        small = n_windows is not None and n_windows < COMPILED_MIN_WINDOWS
+        small = n_windows is not None and n_windows * n_params**2 < COMPILED_MIN_WORK
         use_compiled = _compiled.AVAILABLE and not disabled and not small
         return "numba" if use_compiled else "numpy"
     return backend

@@ -358,12 +358,16 @@ def test_numba_backend_without_numba(monkeypatch, noisy):
 
 def test_auto_backend_compiles_only_for_long_records(monkeypatch):
     """``auto`` keeps short fits on numpy (no one-off compilation)."""
-    from lrmfrf.solvers import COMPILED_MIN_WINDOWS
+    from lrmfrf.solvers import COMPILED_MIN_WORK
 
     monkeypatch.delenv("LRMFRF_DISABLE_NUMBA", raising=False)
-    assert resolve_backend("auto", COMPILED_MIN_WINDOWS - 1) == "numpy"
     expected = "numba" if _compiled.AVAILABLE else "numpy"
-    assert resolve_backend("auto", COMPILED_MIN_WINDOWS) == expected
+    assert COMPILED_MIN_WORK == 8192 * 27**2
+    assert resolve_backend("auto", 8191, 27) == "numpy"
+    assert resolve_backend("auto", 8192, 27) == expected
+    # larger local problems cost numpy more per window: compiled sooner
+    assert resolve_backend("auto", 1600, 62) == expected
+    assert resolve_backend("auto", 1500, 62) == "numpy"
     assert resolve_backend("numpy", 10**9) == "numpy"
 
 
@@ -446,14 +450,14 @@ def test_benchmark_data_matches_per_bin_qr():
     from lrmfrf import LRMBeyondNyquist
     from lrmfrf.plants import wafer_stage
     from lrmfrf.simulate import simulate
-    from lrmfrf.solvers import COMPILED_MIN_WINDOWS
+    from lrmfrf.solvers import COMPILED_MIN_WORK
 
     rng = np.random.default_rng(21)
     F, N = 3, 60_000
     u = multisine(N, rng=rng)
     y = simulate(wafer_stage().G_y4, u, F, snr_db=45.0, rng=rng).y_l
     est = LRMBeyondNyquist().fit(u, y, F)
-    assert est.local_fit_.slow_bins.size >= COMPILED_MIN_WINDOWS
+    assert est.local_fit_.slow_bins.size * est.n_params_**2 >= COMPILED_MIN_WORK
     layout = LocalModelLayout(F=F, **PAPER)
     U, Y = np.fft.fft(u)[None], np.fft.fft(y)[None]
     bins = np.linspace(0, N // F // 2, 120).astype(int)
