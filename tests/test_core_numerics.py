@@ -199,3 +199,15 @@ def test_over_parameterised_noise_free_bins_stay_valid():
     assert est.valid_.all()
     rel = np.abs(est.frf_ - experiment.frf_true)[1:] / np.abs(experiment.frf_true[1:])
     assert rel.max() < 1e-8
+
+
+def test_dft_is_the_unnormalised_dft():
+    """The package's DFT is numpy's convention, X(k) = sum x(n) e^{-2j pi kn/N}."""
+    from lrmfrf.local_models import dft
+
+    rng = np.random.default_rng(4)
+    x = rng.standard_normal((2, 101))
+    n = np.arange(101)
+    direct = x @ np.exp(-2j * np.pi * np.outer(n, n) / 101)
+    np.testing.assert_allclose(dft(x), direct, rtol=1e-12, atol=1e-12 * 101)
+    np.testing.assert_allclose(dft(x), np.fft.fft(x, axis=1), rtol=1e-13, atol=1e-13)

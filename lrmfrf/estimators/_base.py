@@ -10,6 +10,7 @@ from sklearn.base import BaseEstimator
 from sklearn.exceptions import NotFittedError
 
 from .._validation import check_record_stack, check_records
+from ..local_models import dft
 
 __all__ = ["FRFEstimatorMixin"]
 
@@ -72,7 +73,7 @@ class FRFEstimatorMixin:
                 f"{self.n_samples_}. Got {u.shape[1]} samples. The FRF is only "
                 "known on the training DFT grid: pass records of that length."
             )
-        U = np.fft.fft(u, axis=1)
+        U = dft(u)
         G = self._fast_frf(self.n_samples_)
         unexcited = np.abs(U) <= _UNEXCITED_TOL * np.abs(U).max(axis=1, keepdims=True)
         with np.errstate(invalid="ignore"):

@@ -22,7 +22,7 @@ from .._validation import (
     check_sample_time,
 )
 from ..exceptions import IdentifiabilityWarning
-from ..local_models import fit_local_models, one_sided_fast_grid
+from ..local_models import dft, fit_local_models, one_sided_fast_grid
 from ..refinement import _emit_warnings, _refine
 from ..windows import LocalModelLayout
 from ._base import _BaseFRFEstimator
@@ -94,8 +94,8 @@ class _LocalModelEstimator(_BaseFRFEstimator):
             parameter_names=self._degree_names,
         )
         layout = LocalModelLayout(F=F, n_experiments=P, **degrees)
-        U = np.fft.fft(u, axis=1)
-        Y = np.fft.fft(y, axis=1)
+        U = dft(u)
+        Y = dft(y)
         local_fit = fit_local_models(U, Y, layout)
         local_fit = self._refine(U, Y, layout, local_fit, params)
         self._set_fitted(local_fit, layout, N, M, F, P, sample_time)

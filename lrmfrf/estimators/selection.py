@@ -59,7 +59,12 @@ from .._validation import (
     check_records,
     check_sample_time,
 )
-from ..local_models import EXCITATION_TOL, half_slow_bins, window_excitation
+from ..local_models import (
+    EXCITATION_TOL,
+    dft,
+    half_slow_bins,
+    window_excitation,
+)
 from ..progress import progress
 from ..solvers import solve_local_least_squares
 from ..windows import LocalModelLayout, local_regressor
@@ -320,8 +325,8 @@ class _LocalModelCV(_BaseFRFEstimator):
                 "half_windows (each needs P*(2n+1) > (R_g+1)F + P(R_t+1) + R_e "
                 "and 2n+1 <= M)."
             )
-        U = np.fft.fft(u, axis=1)
-        Y = np.fft.fft(y, axis=1)
+        U = dft(u)
+        Y = dft(y)
         todo = [i for i, layout in enumerate(layouts) if layout is not None]
         results = Parallel(n_jobs=self.n_jobs)(
             delayed(local_model_criterion)(U, Y, layouts[i], criterion=self.criterion)
