@@ -57,8 +57,8 @@ __all__ = ["AVAILABLE", "LANES", "moment_tables", "solve_windows"]
 #: Windows solved together in SIMD lanes. Loops over 32 lanes or fewer are
 #: fully unrolled by LLVM and then not vectorised (it cannot prove that the
 #: scratch rows do not alias); longer ones vectorise behind runtime alias
-#: checks, whose cost per loop favours long loops: 9.0, 9.7 and 10.1 us per
-#: window (paper degrees, one thread) with 96, 64 and 48 lanes, 10.1 with 256.
+#: checks, whose cost per loop favours long loops: 6.6, 5.8, 5.7 and 5.7 us per
+#: window (paper degrees, one thread) with 48, 64, 96 and 128 lanes.
 LANES = 96
 
 #: Lane groups a thread takes at a time from the shared queue.
@@ -249,6 +249,8 @@ def _solve_range_py(
 
 
 def _scratch_py(F, P, L, p, n_moments, n_centre):
+    """Work arrays of one lane group, reused by all groups of a thread
+    (~1.7 MB at the paper's degrees); unpacked in :func:`_lane_group`."""
     n_base = F + P + 1
     n = L // 2
     f64 = np.float64
@@ -279,6 +281,9 @@ def _lane_group(
     ent_ptr, ent_mom, ent_coef, ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef,
     to_layout, fallback_tol, refine_tol, refine_steps, theta, rss, cvar, fast, s,
 ):
+    """Solve the windows ``bins[first:first+LANES]`` (the last group repeats
+    its final window in the unused lanes) and write rows ``first..`` of
+    ``theta``, ``rss``, ``cvar`` and ``fast``; steps 1-7 below."""
     (sr, si, Sr, Si, Er, Ei, Or, Oi, mr, mi, Hr, Hi, gr, gi, xr, xi, dr, di,
      scale2, polyr, polyi, resr, resi, ok, change_num, change_den, k, tr, ti) = s
     P = U.shape[0]
