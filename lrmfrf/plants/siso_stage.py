@@ -77,22 +77,26 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import control
 import numpy as np
 import scipy.linalg
 
-from ._validation import check_sample_time, check_siso_system
+from .._validation import check_sample_time, check_siso_system
+from .loops import (
+    Margins,
+    _check_mass,
+    _close_loop,
+    _zoh,
+    lead_pid_controller,
+    loop_margins,
+)
 
 __all__ = [
     "DEFAULT_MODES",
-    "Margins",
     "Mode",
     "WaferStage",
     "closed_loop",
-    "lead_pid_controller",
-    "loop_margins",
     "modal_plant",
     "wafer_stage",
 ]
@@ -134,32 +138,6 @@ DEFAULT_MODES: tuple[Mode, ...] = (
     Mode(610.0, 0.015, 0.20, 0.80),
 )
 """Default flexible modes of :func:`wafer_stage` (see the module docstring)."""
-
-
-class Margins(NamedTuple):
-    """Stability margins of a discrete feedback loop.
-
-    Attributes
-    ----------
-    gain_margin : float
-        Smallest factor > 1 by which the loop gain can grow before
-        instability (absolute, not dB); ``inf`` if there is none.
-    lower_gain_margin : float
-        Largest factor < 1 to which the loop gain can shrink before
-        instability (conditionally stable loops); 0 if there is none.
-    phase_margin : float
-        Smallest phase margin in degrees.
-    crossover_hz : float
-        Lowest gain-crossover frequency (``|L| = 1``) in Hz: the bandwidth.
-    modulus_margin : float
-        ``min |1 + L|`` over frequency (inverse peak sensitivity).
-    """
-
-    gain_margin: float
-    lower_gain_margin: float
-    phase_margin: float
-    crossover_hz: float
-    modulus_margin: float
 
 
 @dataclass(frozen=True, eq=False)
@@ -275,59 +253,6 @@ def modal_plant(
     )
 
 
-def lead_pid_controller(
-    bandwidth_hz: float,
-    mass: float,
-    *,
-    sample_time: float,
-) -> control.StateSpace:
-    """Discrete PID controller with lead and second-order low-pass.
-
-    ``C(s) = k (1 + w_i/s) (1 + s/w_z)/(1 + s/w_p) w_lp^2/(s^2 + 2 zeta_lp
-    w_lp s + w_lp^2)`` with ``w_i = w_c/6``, ``w_z = w_c/4``, ``w_p = 4 w_c``,
-    ``w_lp = 8 w_c``, ``zeta_lp = 0.6``, ``w_c = 2 pi bandwidth_hz``, and gain
-    ``k`` chosen so that the loop with the rigid body ``1/(m s^2)`` crosses
-    over at ``w_c``. Tustin discretisation pre-warped at ``w_c``.
-
-    Parameters
-    ----------
-    bandwidth_hz : float
-        Intended gain-crossover frequency in Hz, > 0 and below
-        ``1 / (16 sample_time)`` (so the low-pass stays below Nyquist).
-    mass : float
-        Rigid-body mass in kg used to set the gain, > 0.
-    sample_time : float
-        Sample time in s, > 0.
-
-    Returns
-    -------
-    control.StateSpace
-        Discrete SISO controller (4 states), input position (m), output
-        force (N), ``dt = sample_time``.
-    """
-    _check_mass(mass)
-    check_sample_time(sample_time)
-    if not (np.isfinite(bandwidth_hz) and 0.0 < bandwidth_hz < 1 / (16 * sample_time)):
-        raise ValueError(
-            f"bandwidth_hz must be in (0, {1 / (16 * sample_time):g}) Hz for "
-            f"sample_time={sample_time:g} s; got {bandwidth_hz!r}. Choose a "
-            "lower bandwidth or a shorter sample time."
-        )
-    omega_c = 2.0 * math.pi * bandwidth_hz
-    s = control.tf("s")
-    integrator = (s + omega_c / 6.0) / s
-    lead = (1 + s / (omega_c / 4.0)) / (1 + s / (4.0 * omega_c))
-    omega_lp = 8.0 * omega_c
-    low_pass = omega_lp**2 / (s**2 + 2 * 0.6 * omega_lp * s + omega_lp**2)
-    shape = integrator * lead * low_pass
-    gain = mass * omega_c**2 / abs(shape(1j * omega_c))
-    continuous = gain * shape
-    discrete = control.sample_system(
-        continuous, sample_time, method="tustin", prewarp_frequency=omega_c
-    )
-    return control.ss(discrete, inputs=["y4"], outputs=["force"], name="controller")
-
-
 def closed_loop(
     plant_output_ss: control.StateSpace,
     plant_feedback_ss: control.StateSpace,
@@ -393,68 +318,6 @@ def closed_loop(
         )
     ctrl = control.ss(controller)
     return _close_loop(output, feedback, ctrl)
-
-
-def loop_margins(
-    plant_feedback_ss: control.StateSpace,
-    controller: control.StateSpace | control.TransferFunction,
-    *,
-    n_frequencies: int = 6000,
-) -> Margins:
-    """Gain, phase and modulus margins of the discrete loop ``L = C P_y``.
-
-    The loop frequency response is evaluated exactly from the state-space
-    matrices on a logarithmic grid from 0.01 Hz to just below the Nyquist
-    frequency and passed, as a ``control.FrequencyResponseData``, to
-    :func:`control.stability_margins`. (Its polynomial method is unreliable for
-    high-order, lightly damped discrete loops and falls back to a coarse
-    grid.)
-
-    Parameters
-    ----------
-    plant_feedback_ss : control.StateSpace
-        Discrete SISO plant ``u -> y``.
-    controller : control.StateSpace or control.TransferFunction
-        Discrete SISO controller, same sample time.
-    n_frequencies : int, default 6000
-        Number of logarithmically spaced grid points (spacing 0.2 %: about
-        8 points per half-power bandwidth of a 0.8 % damped mode; increase it
-        for lighter damping). The margin calculation takes about 1 s.
-
-    Returns
-    -------
-    Margins
-        Smallest upward gain margin, largest downward gain margin (PID on a
-        double integrator is conditionally stable), smallest phase margin,
-        lowest gain-crossover frequency and modulus margin, all from
-        ``control.stability_margins(..., returnall=True)``.
-    """
-    loop = control.series(control.ss(plant_feedback_ss), control.ss(controller))
-    if not control.isdtime(loop, strict=True):
-        raise ValueError(
-            "loop_margins needs discrete-time systems; discretise them first."
-        )
-    nyquist_hz = 0.5 / float(loop.dt)
-    frequencies_hz = np.geomspace(1e-2, nyquist_hz * (1 - 1e-6), n_frequencies)
-    response = _discrete_response(loop, frequencies_hz)
-    data = control.frd(response, 2.0 * math.pi * frequencies_hz)
-    gains, phases, moduli, _, crossovers, _ = control.stability_margins(
-        data, returnall=True
-    )
-    gains = np.asarray(gains, dtype=float)
-    upper = gains[gains >= 1.0]
-    lower = gains[gains < 1.0]
-    return Margins(
-        gain_margin=float(np.min(upper)) if upper.size else math.inf,
-        lower_gain_margin=float(np.max(lower)) if lower.size else 0.0,
-        phase_margin=float(np.min(phases)) if np.size(phases) else math.inf,
-        crossover_hz=(
-            float(np.min(crossovers)) / (2.0 * math.pi)
-            if np.size(crossovers)
-            else math.nan
-        ),
-        modulus_margin=float(np.min(moduli)) if np.size(moduli) else math.nan,
-    )
 
 
 def wafer_stage(
@@ -559,11 +422,6 @@ def wafer_stage(
 # ---------------------------------------------------------------------------
 
 
-def _check_mass(mass: float) -> None:
-    if not (np.isscalar(mass) and np.isfinite(mass) and mass > 0):
-        raise ValueError(f"mass must be a finite number > 0 kg; got {mass!r}.")
-
-
 def _check_modes(modes: Sequence[Mode]) -> tuple[Mode, ...]:
     modes = tuple(modes)
     for index, mode in enumerate(modes):
@@ -590,78 +448,6 @@ def _check_modes(modes: Sequence[Mode]) -> tuple[Mode, ...]:
                 f"modes[{index}].damping must be in [0, 1); got {mode.damping!r}."
             )
     return modes
-
-
-def _zoh(system: control.StateSpace, sample_time: float) -> control.StateSpace:
-    """Zero-order-hold discretisation via the augmented matrix exponential."""
-    n_states, n_inputs = system.B.shape
-    augmented = np.zeros((n_states + n_inputs, n_states + n_inputs))
-    augmented[:n_states, :n_states] = system.A
-    augmented[:n_states, n_states:] = system.B
-    transition = scipy.linalg.expm(augmented * sample_time)
-    return control.ss(
-        transition[:n_states, :n_states],
-        transition[:n_states, n_states:],
-        system.C,
-        system.D,
-        sample_time,
-        inputs=system.input_labels,
-        outputs=system.output_labels,
-        states=system.state_labels,
-        name=f"{system.name}_zoh",
-    )
-
-
-def _close_loop(
-    output: control.StateSpace,
-    feedback: control.StateSpace,
-    controller: control.StateSpace,
-) -> control.StateSpace:
-    """State-space closed loop ``u_h -> P_o (1 + C P_y)^-1 u_h``, with checks.
-
-    With ``w = u_h - C y`` the algebraic loop gives
-    ``w = s (u_h - Dc Cy x - Cc xc)``, ``s = 1 / (1 + Dc Dy)``.
-    """
-    a, b = output.A, output.B
-    c_out, d_out = output.C, output.D
-    c_fb, d_fb = feedback.C, feedback.D
-    ac, bc, cc, dc = controller.A, controller.B, controller.C, controller.D
-    denominator = 1.0 + float(dc[0, 0] * d_fb[0, 0])
-    if abs(denominator) < 1e-12:
-        raise ValueError(
-            "the feedback loop is algebraically singular (1 + D_C D_P = 0); "
-            "add a delay or change the controller feedthrough."
-        )
-    s = 1.0 / denominator
-    a_cl = np.block(
-        [
-            [a - s * b @ dc @ c_fb, -s * b @ cc],
-            [bc @ c_fb - s * bc @ d_fb @ dc @ c_fb, ac - s * bc @ d_fb @ cc],
-        ]
-    )
-    b_cl = np.vstack([s * b, s * bc @ d_fb])
-    c_cl = np.hstack([c_out - s * d_out @ dc @ c_fb, -s * d_out @ cc])
-    d_cl = s * d_out
-    radius = float(np.max(np.abs(np.linalg.eigvals(a_cl))))
-    if radius >= 1.0:
-        raise ValueError(
-            f"the controller does not stabilise the loop: largest closed-loop "
-            f"pole magnitude is {radius:.6g} >= 1. Lower the controller "
-            "bandwidth, or reduce the feedback-output participation "
-            "(participation_y4) or raise the damping of the modes above it."
-        )
-    return control.ss(a_cl, b_cl, c_cl, d_cl, output.dt)
-
-
-def _discrete_response(
-    system: control.StateSpace, frequencies_hz: np.ndarray
-) -> np.ndarray:
-    """SISO ``C (z I - A)^-1 B + D`` at ``z = exp(j 2 pi f dt)``, shape (n_f,)."""
-    from .simulate import _resolvent_response
-
-    z = np.exp(2j * math.pi * frequencies_hz * float(system.dt))
-    A = np.asarray(system.A, dtype=float)
-    return _resolvent_response(A, system.C[0], system.B[:, 0], z) + system.D[0, 0]
 
 
 def _named(system: control.StateSpace, name: str, output: str) -> control.StateSpace:
