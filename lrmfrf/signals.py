@@ -6,7 +6,7 @@ import numpy as np
 
 from ._validation import check_nonnegative_int, check_positive_float
 
-__all__ = ["multisine"]
+__all__ = ["multisine", "orthogonal_multisines"]
 
 
 def multisine(
@@ -59,6 +59,78 @@ def multisine(
     if N % 2 == 0 and bins[-1] == N // 2:
         spectrum[N // 2] = rng.choice([-1.0, 1.0])
     u = np.fft.irfft(spectrum, n=N)
+    return u * (rms / np.sqrt(np.mean(u**2)))
+
+
+def orthogonal_multisines(
+    n_inputs: int,
+    n_samples: int,
+    *,
+    rms: float = 1.0,
+    bins=None,
+    rng: int | np.random.Generator | None = None,
+) -> np.ndarray:
+    """Orthogonal random-phase multisines for ``n_inputs`` experiments.
+
+    Experiment ``p`` drives input ``i`` with the spectrum
+    ``U_i^[p](k) = A exp(j phi_i(k)) T[i, p]``, where ``phi_i(k)`` are random
+    phases (one set per input, shared by the experiments) and
+    ``T[i, p] = exp(-j 2 pi i p / n_inputs)`` is the DFT matrix (Dobrowiecki,
+    Schoukens and Guillaume, 2006). At every excited bin the input matrix
+    ``U(k)`` (inputs x experiments) then satisfies ``U(k) U(k)^H = n_inputs A^2
+    I``: the experiments excite the inputs in orthogonal directions, the best
+    conditioned MIMO excitation with a flat amplitude spectrum. The Nyquist
+    bin (even ``N``), whose value must be real, uses ``sqrt(n_inputs) A``
+    times a random sign on input ``p`` of experiment ``p`` only, which keeps
+    the same orthogonality there.
+
+    Parameters
+    ----------
+    n_inputs : int
+        Number of inputs ``n_u`` (>= 1); as many experiments are returned.
+    n_samples : int
+        Period ``N`` in samples.
+    rms : float, default=1.0
+        Root-mean-square value of the signals (exactly, for each signal, when
+        the Nyquist bin is not excited; otherwise on average over them).
+    bins : array-like of int, optional
+        Excited DFT bins in ``1..N//2``; default all of them (no DC).
+    rng : int, numpy.random.Generator or None
+        Seed or generator for the random phases.
+
+    Returns
+    -------
+    ndarray of shape (n_inputs, n_inputs, n_samples)
+        ``[p, i]`` is the signal of input ``i`` in experiment ``p``: the
+        package's ``(P, n_u, N)`` layout for several experiments.
+
+    References
+    ----------
+    T. Dobrowiecki, J. Schoukens and P. Guillaume, "Optimized excitation
+    signals for MIMO frequency response function measurements", IEEE Trans.
+    Instrum. Meas. 55(6), 2006.
+
+    Examples
+    --------
+    >>> from lrmfrf.signals import orthogonal_multisines
+    >>> u = orthogonal_multisines(2, 1000, rng=0)
+    >>> u.shape
+    (2, 2, 1000)
+    """
+    n_u = check_nonnegative_int(n_inputs, "n_inputs", minimum=1)
+    N = check_nonnegative_int(n_samples, "n_samples", minimum=2)
+    rms = check_positive_float(rms, "rms", allow_none=False)
+    bins = np.arange(1, N // 2 + 1) if bins is None else _check_bins(bins, N)
+    rng = np.random.default_rng(rng)
+    index = np.arange(n_u)
+    dft_matrix = np.exp(-2j * np.pi * np.outer(index, index) / n_u)  # [i, p]
+    phases = np.exp(2j * np.pi * rng.random((n_u, bins.size)))  # [i, k]
+    spectrum = np.zeros((n_u, n_u, N // 2 + 1), dtype=complex)  # [p, i, k]
+    spectrum[:, :, bins] = dft_matrix.T[:, :, np.newaxis] * phases[np.newaxis]
+    if N % 2 == 0 and bins[-1] == N // 2:
+        signs = rng.choice([-1.0, 1.0], size=n_u)
+        spectrum[:, :, N // 2] = np.diag(np.sqrt(n_u) * signs)
+    u = np.fft.irfft(spectrum, n=N, axis=-1)
     return u * (rms / np.sqrt(np.mean(u**2)))
 
 

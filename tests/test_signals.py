@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from lrmfrf import multisine
+from lrmfrf.signals import orthogonal_multisines
 
 
 @pytest.mark.parametrize("N", [1200, 1201, 64])
@@ -52,3 +53,50 @@ def test_multisine_bad_length():
         multisine(1)
     with pytest.raises(TypeError, match="`n_samples` must be an integer"):
         multisine(100.5)
+
+
+@pytest.mark.parametrize("n_u, N", [(1, 64), (2, 100), (3, 99), (4, 128), (5, 250)])
+def test_orthogonal_multisines_are_orthogonal_at_every_bin(n_u, N):
+    """U(k) U(k)^H = n_u A^2 I at every excited bin, Nyquist included."""
+    u = orthogonal_multisines(n_u, N, rms=2.0, rng=3)
+    assert u.shape == (n_u, n_u, N) and np.isrealobj(u)
+    U = np.fft.rfft(u, axis=-1)[:, :, 1:]  # [p, i, k], DC not excited
+    np.testing.assert_allclose(np.fft.rfft(u, axis=-1)[:, :, 0], 0.0, atol=1e-9)
+    gram = np.einsum("pik,pjk->kij", U, U.conj())
+    amplitude2 = np.abs(U[0, 0, 0]) ** 2
+    expected = n_u * amplitude2 * np.eye(n_u)
+    np.testing.assert_allclose(gram, np.broadcast_to(expected, gram.shape),
+                               atol=1e-9 * n_u * amplitude2)
+    assert np.sqrt(np.mean(u**2)) == pytest.approx(2.0, rel=1e-12)
+
+
+def test_orthogonal_multisines_flat_spectrum_and_equal_rms_without_nyquist():
+    u = orthogonal_multisines(3, 101, rms=1.5, rng=0)  # odd N: no Nyquist bin
+    magnitude = np.abs(np.fft.rfft(u, axis=-1)[:, :, 1:])
+    np.testing.assert_allclose(magnitude, magnitude[0, 0, 0], rtol=1e-10)
+    np.testing.assert_allclose(np.sqrt(np.mean(u**2, axis=-1)), 1.5, rtol=1e-12)
+
+
+def test_orthogonal_multisines_selected_bins_and_seeding():
+    u = orthogonal_multisines(2, 200, bins=[3, 7, 50], rng=5)
+    excited = np.flatnonzero(np.abs(np.fft.rfft(u[1, 0])) > 1e-9)
+    np.testing.assert_array_equal(excited, [3, 7, 50])
+    np.testing.assert_array_equal(u, orthogonal_multisines(2, 200, bins=[3, 7, 50],
+                                                           rng=5))
+    assert not np.array_equal(u, orthogonal_multisines(2, 200, bins=[3, 7, 50],
+                                                       rng=6))
+
+
+@pytest.mark.parametrize(
+    "args, kwargs, exc, match",
+    [
+        ((0, 100), {}, ValueError, "n_inputs"),
+        ((2.5, 100), {}, TypeError, "n_inputs"),
+        ((2, 1), {}, ValueError, "n_samples"),
+        ((2, 100), {"rms": -1.0}, ValueError, "rms"),
+        ((2, 100), {"bins": [0, 1]}, ValueError, "bins"),
+    ],
+)
+def test_orthogonal_multisines_bad_input(args, kwargs, exc, match):
+    with pytest.raises(exc, match=match):
+        orthogonal_multisines(*args, **kwargs)
