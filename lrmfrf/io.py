@@ -752,7 +752,8 @@ def _csv_columns(path, reader, indices, header, header_line, max_samples, *,
 
 def _parse_cells(path, cells: list[str], name: str, first_line: int) -> np.ndarray:
     text = np.char.strip(np.array(cells, dtype=str))
-    text[text == ""] = "nan"
+    # "nan" needs three characters: a column of one-character cells is '<U1'.
+    text = np.where(text == "", np.array("nan", dtype="<U3"), text)
     try:
         return text.astype(np.float64)
     except ValueError:

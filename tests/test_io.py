@@ -108,6 +108,17 @@ def test_csv_nan_text_between_samples_is_accepted(tmp_path):
     np.testing.assert_array_equal(data.y_l, y)
 
 
+def test_csv_one_character_cells_between_empty_cells(tmp_path):
+    """Issue 12 item 1: one-character numbers and empty cells in one column
+    were parsed as a '<U1' array that cut the "nan" fill to "n"."""
+    path = tmp_path / "d.csv"
+    path.write_text("u,y\n7,6\n3,\n0,\n1,2\n4,\n5,\n")
+    data = read_measurement(path, F=3)
+    np.testing.assert_array_equal(data.u_h, [7.0, 3.0, 0.0, 1.0, 4.0, 5.0])
+    np.testing.assert_array_equal(data.y_l, [6.0, 2.0])
+    assert data.output_layout == "fast"
+
+
 def test_csv_chunk_boundaries_do_not_change_result(tmp_path, monkeypatch):
     rng = np.random.default_rng(4)
     u, y = _records(rng, M=50, F=3)
