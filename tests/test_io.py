@@ -11,7 +11,6 @@ import scipy.io
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from lrmfrf import io as lio
 from lrmfrf.io import (
     FRF_COLUMNS,
     DataFileError,
@@ -23,6 +22,7 @@ from lrmfrf.io import (
     write_frf_csv,
     write_frf_npz,
 )
+from lrmfrf.io import readers as lio
 
 
 def _records(rng, M=40, F=3):
