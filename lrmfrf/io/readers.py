@@ -210,6 +210,7 @@ class _Raw:
     sample_time_origin: str = ""
     factor: int | None = None
     factor_origin: str = ""
+    sha256: str = ""
 
 
 def read_measurement(
@@ -300,7 +301,7 @@ def read_measurement(
         f"input RMS {np.sqrt(np.dot(u_h, u_h) / u_h.size):.4g}, output RMS "
         f"{np.sqrt(np.dot(y_l, y_l) / y_l.size):.4g}"
     )
-    digest = file_sha256(path)
+    digest = raw.sha256 or file_sha256(path)
     checks.append(f"file SHA-256 {digest}")
     logger.debug("read %s: N=%d, M=%d, layout=%s", path, u_h.size, y_l.size, layout)
     return Measurement(
@@ -558,9 +559,10 @@ def _read_csv(path: Path, input_column: str, output_column: str, time_column,
     time_index, time_unit = _time_column_index(path, header, time_column, indices)
     if time_index is not None:
         indices.append(time_index)
+    n_lines, digest = _scan(path)
     columns = _csv_columns(
         path, header, delimiter, header_line, indices, max_samples,
-        capacity=_count_lines(path),
+        capacity=n_lines,
     )
     shown = ", ".join(repr(h) for h in header)
     checks = [
@@ -572,7 +574,7 @@ def _read_csv(path: Path, input_column: str, output_column: str, time_column,
     def where(index: int) -> str:
         return f"line {header_line + 1 + index}"
 
-    raw = _Raw(columns[0], columns[1], where, checks)
+    raw = _Raw(columns[0], columns[1], where, checks, sha256=digest)
     if time_index is not None:
         name = header[time_index]
         raw.sample_time = _time_step(path, columns[2] * time_unit, name, where)
@@ -688,11 +690,18 @@ def _time_step(path, time: np.ndarray, name: str, where) -> float:
 
 def _count_lines(path: Path, block_size: int = 2**20) -> int:
     """Number of line breaks + 1: an upper bound on the rows (bounded memory)."""
+    return _scan(path, block_size)[0]
+
+
+def _scan(path: Path, block_size: int = 2**20) -> tuple[int, str]:
+    """Line breaks + 1 and the SHA-256 of a file, in one pass over its bytes."""
     count = 1
+    digest = hashlib.sha256()
     with open(path, "rb") as fh:
         for block in iter(lambda: fh.read(block_size), b""):
             count += block.count(b"\n")
-    return count
+            digest.update(block)
+    return count, digest.hexdigest()
 
 
 def _csv_blocks(path, header, delimiter, header_line):
@@ -760,11 +769,21 @@ def _csv_columns(path, header, delimiter, header_line, indices, max_samples, *,
         raise DataFileError(
             path, "has a header but no data rows", "Write the data below the header"
         )
-    columns = [c[:n_rows] for c in columns]
-    # Blank lines at the end of the file are not data.
-    blank = np.isnan(columns[0]) & np.isnan(columns[1])
-    keep = blank.size - int(np.argmax(~blank[::-1])) if (~blank).any() else 0
+    keep = _rows_before_blank_tail(columns[0][:n_rows], columns[1][:n_rows])
     return [col[:keep] for col in columns]
+
+
+def _rows_before_blank_tail(u: np.ndarray, y: np.ndarray, block: int = 4096) -> int:
+    """Rows up to the last one with an input or output value: blank lines at the
+    end of a file are not data (scanned from the end, block by block)."""
+    stop = u.size
+    while stop > 0:
+        start = max(stop - block, 0)
+        filled = ~(np.isnan(u[start:stop]) & np.isnan(y[start:stop]))
+        if filled.any():
+            return start + int(np.flatnonzero(filled)[-1]) + 1
+        stop = start
+    return 0
 
 
 def _block_values(path, cells, name: str, first_line: int) -> np.ndarray:
