@@ -457,8 +457,8 @@ def _slow_output(
     path, y_raw: np.ndarray, n_fast: int, F: int, name: str, where, checks: list
 ) -> tuple[np.ndarray, str]:
     """Extract ``y_l`` (M,) from a slow column or a fast column with gaps."""
-    missing = np.isnan(y_raw)
-    fast_layout = F > 1 and y_raw.size == n_fast and n_fast > 1 and missing[1]
+    fast_layout = (F > 1 and y_raw.size == n_fast and n_fast > 1
+                   and np.isnan(y_raw[1]))
     if fast_layout:
         if n_fast % F:
             raise DataFileError(
@@ -466,11 +466,13 @@ def _slow_output(
                 f"the input has N={n_fast} samples, not a multiple of F={F}",
                 f"Check --F, or trim the record to {n_fast - n_fast % F} samples",
             )
-        on_grid = np.zeros(n_fast, dtype=bool)
-        on_grid[::F] = True
-        off_values = ~missing & ~on_grid
+        # Rows between the slow samples, one row of the view per slow sample:
+        # no N-sized temporaries.
+        off_grid = y_raw.reshape(-1, F)[:, 1:]
+        off_values = ~np.isnan(off_grid)
         if off_values.any():
-            first = int(np.flatnonzero(off_values)[0])
+            row, column = np.argwhere(off_values)[0]
+            first = int(row) * F + 1 + int(column)
             raise DataFileError(
                 path,
                 f"output {name!r} is stored at the fast rate but has values "
@@ -497,7 +499,7 @@ def _slow_output(
         )
         checks.append(f"lengths: N = F*M = {F}*{y_l.size} = {n_fast}")
         return y_l.copy(), "fast"
-    present = np.flatnonzero(~missing)
+    present = np.flatnonzero(~np.isnan(y_raw))
     n_used = int(present[-1]) + 1 if present.size else 0
     y_l = y_raw[:n_used]
     padding = y_raw.size - n_used
@@ -679,7 +681,7 @@ def _time_step(path, time: np.ndarray, name: str, where) -> float:
         raise DataFileError(
             path,
             f"time column {name!r} is not uniformly increasing (mean step "
-            f"{step:.6g} s, the step after {where(first)} is "
+            f"{step:.6g} s, the step from {where(first)} to the next row is "
             f"{float(steps[first]):.6g} s)",
             "The records must be sampled uniformly at the fast rate; write the "
             "time with more digits, or ignore it with --time-column none "
@@ -704,7 +706,7 @@ def _scan(path: Path, block_size: int = 2**20) -> tuple[int, str]:
     return count, digest.hexdigest()
 
 
-def _csv_blocks(path, header, delimiter, header_line):
+def _csv_blocks(path, header, delimiter, header_line, indices):
     """pandas' C parser over the data rows, :data:`CSV_CHUNK_ROWS` at a time."""
     import pandas as pd
 
@@ -713,7 +715,8 @@ def _csv_blocks(path, header, delimiter, header_line):
         sep=delimiter,
         header=None,
         names=list(range(len(header))),
-        index_col=False,
+        usecols=sorted(indices),  # other columns are not converted; extra
+        index_col=False,  # cells in a row are ignored, as before
         skiprows=header_line,
         skip_blank_lines=False,  # blank rows keep their line numbers
         skipinitialspace=True,
@@ -735,7 +738,7 @@ def _csv_columns(path, header, delimiter, header_line, indices, max_samples, *,
     columns = [np.empty(size) for _ in indices]
     n_rows = 0
     try:
-        with _csv_blocks(path, header, delimiter, header_line) as blocks:
+        with _csv_blocks(path, header, delimiter, header_line, indices) as blocks:
             for block in blocks:
                 n_block = len(block)
                 if n_rows + n_block > max_samples:
