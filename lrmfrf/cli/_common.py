@@ -178,7 +178,9 @@ def warnings_to_lines(args, collected: list | None = None):
     ``collected``, also append each message (for the reports)."""
 
     def show(message, category, filename, lineno, file=None, line=None):
-        text = one_line(message)
+        text = " ".join(str(message).split())
+        if category is not UserWarning:  # e.g. "RuntimeWarning: overflow ..."
+            text = f"{category.__name__}: {text}"
         if collected is not None:
             collected.append(text)
         if not args.quiet:

@@ -378,8 +378,14 @@ class AtomicGroup:
         try:
             for tmp_name, path in self._pending:
                 backup = _backup(path)
+                try:
+                    os.replace(tmp_name, path)
+                except BaseException:
+                    if backup is not None:  # the old file is still in place
+                        with suppress(OSError):
+                            os.unlink(backup)
+                    raise
                 done.append((path, backup))
-                os.replace(tmp_name, path)
         except BaseException:
             for path, backup in reversed(done):
                 with suppress(OSError):
