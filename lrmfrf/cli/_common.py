@@ -104,9 +104,9 @@ def add_common(parser) -> None:
                         "or summary)")
 
 
-def add_data_options(parser, *, several: bool) -> None:
+def add_data_options(parser, *, several: bool, sample_time_else: str = "") -> None:
     """``--F``, ``--sample-time`` and the column options of a data file."""
-    files = "every file" if several else "the file"
+    files = "each file" if several else "the file"
     parser.add_argument(
         "--F", dest="F", type=downsampling_factor, default=None,
         help="downsampling factor: slow / fast sample time (an integer; 3.0 is "
@@ -117,7 +117,7 @@ def add_data_options(parser, *, several: bool) -> None:
         "--sample-time", type=positive_float, default=None, metavar="SECONDS",
         help="fast sample time in seconds, e.g. 0.5e-3. Default: the value "
         f"{files} stores (.npz/.mat 'sample_time', or the step of a CSV time "
-        "column); a value that contradicts the file is refused")
+        f"column){sample_time_else}; a value that contradicts the file is refused")
     from ..io import DEFAULT_MAX_SAMPLES, TIME_COLUMNS
 
     columns = parser.add_argument_group("data columns")

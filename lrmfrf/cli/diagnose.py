@@ -49,7 +49,8 @@ def add_parser(sub) -> None:
                       help=".csv (header row), .npz or .mat file")
     diag.add_argument("--out", type=output_folder, required=True, metavar="DIR",
                       help="output folder (created if needed)")
-    add_data_options(diag, several=False)
+    add_data_options(diag, several=False,
+                     sample_time_else=", else the dt of a discrete-time plant")
     diag.add_argument("--open-loop", action="store_true",
                       help="ignore `controller`: the data are the plant itself")
     diag.add_argument("--seed", type=nonnegative_int, default=0,

@@ -11,6 +11,7 @@ from __future__ import annotations
 import inspect
 import platform
 import shlex
+import sys
 import time
 import warnings
 from dataclasses import dataclass
@@ -134,8 +135,6 @@ def run(args, parser) -> int:
                    unit="file")
     # Lines printed while a bar is drawn go through tqdm.write (no garbling).
     write = getattr(bar, "write", None) or (lambda text, file: print(text, file=file))
-    import sys
-
     for job in bar:
         try:
             summary = _fit_one(job, args, settings, [j.data for j in jobs], write)
@@ -229,8 +228,6 @@ def _subfolder_names(inputs: list[Path]) -> list[str]:
 
 
 def _fit_one(job: _Job, args, settings: dict, inputs: list[Path], write) -> str:
-    import sys
-
     from ..io import atomic_group, frf_table, write_frf_csv, write_frf_npz
 
     data = read_data(job.data, args)
