@@ -657,6 +657,10 @@ def test_out_under_a_file_and_empty_out(tmp_path, capsys):
                                           "'.' for the current folder"])
     status, out, err = _run(["example-data", "--out", ""], capsys)
     assert status == 2
+    for command in (["demo"], ["example-data"]):
+        status, out, err = _run([*command, "--out", tmp_path / "plain" / "o"],
+                                capsys)
+        _check_one_line(status, out, err, 1, ["plain is a file, not a folder"])
 
 
 def test_warnings_are_one_line_and_quiet_silences_them(tmp_path, capsys,

@@ -8,6 +8,7 @@ from ._common import (
     PROG,
     CLIError,
     add_common,
+    check_out_folder,
     finite_float,
     nonnegative_int,
     one_line,
@@ -45,6 +46,7 @@ def run(args, parser) -> int:
             f"the demo is not available in this installation ({one_line(exc)}). "
             "Reinstall lrmfrf or update it."
         ) from exc
+    check_out_folder(args.out)
     result = run_demo(args.out, seed=args.seed, snr_db=args.snr, overwrite=args.force)
     if not args.quiet:
         say(result.table)
