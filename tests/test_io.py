@@ -644,3 +644,18 @@ def test_rows_shorter_or_longer_than_the_header(tmp_path):
     data = read_measurement(path, F=2)
     np.testing.assert_array_equal(data.u_h, [1, 2, 3, 4])
     np.testing.assert_array_equal(data.y_l, [5, 6])
+
+
+def test_huge_values_are_read_without_overflow_warnings(tmp_path, good):
+    """The RMS in the checks squared the data: 1e300 overflowed with a
+    RuntimeWarning; it is scaled first now (the RMS of c*x is c*RMS(x))."""
+    import warnings
+
+    u, y = good
+    np.savez(tmp_path / "d.npz", u=u * 1e300, y=y * 1e300)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        data = read_measurement(tmp_path / "d.npz", F=3)
+    rms = float(np.sqrt(np.mean(u**2)))
+    line = next(c for c in data.checks if c.startswith("input RMS"))
+    assert line.startswith(f"input RMS {rms * 1e300:.4g}, ")

@@ -297,10 +297,7 @@ def read_measurement(
     u_h = _check_input(path, raw.u, input_column, raw.where, checks)
     y_l, layout = _slow_output(path, raw.y, u_h.size, F, output_column, raw.where,
                                checks)
-    checks.append(  # RMS through dot products: no N-sized temporaries
-        f"input RMS {np.sqrt(np.dot(u_h, u_h) / u_h.size):.4g}, output RMS "
-        f"{np.sqrt(np.dot(y_l, y_l) / y_l.size):.4g}"
-    )
+    checks.append(f"input RMS {_rms(u_h):.4g}, output RMS {_rms(y_l):.4g}")
     digest = raw.sha256 or file_sha256(path)
     checks.append(f"file SHA-256 {digest}")
     logger.debug("read %s: N=%d, M=%d, layout=%s", path, u_h.size, y_l.size, layout)
@@ -318,6 +315,18 @@ def read_measurement(
         sample_time=sample_time,
         sample_time_source=source,
     )
+
+
+def _rms(x: np.ndarray) -> float:
+    """Root mean square through a dot product (no N-sized temporary), scaled
+    first only when the squares overflow (|x| beyond about 1e154)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        square = np.dot(x, x)
+    if np.isfinite(square):
+        return float(np.sqrt(square / x.size))
+    scale = max(float(np.max(x)), -float(np.min(x)))
+    scaled = x / scale
+    return scale * float(np.sqrt(np.dot(scaled, scaled) / x.size))
 
 
 def file_sha256(path, *, block_size: int = 2**20) -> str:
