@@ -659,3 +659,19 @@ def test_huge_values_are_read_without_overflow_warnings(tmp_path, good):
     rms = float(np.sqrt(np.mean(u**2)))
     line = next(c for c in data.checks if c.startswith("input RMS"))
     assert line.startswith(f"input RMS {rms * 1e300:.4g}, ")
+
+
+def test_every_public_name_of_the_old_module_imports_from_the_package():
+    """Item 11: lrmfrf/io.py became lrmfrf/io/ (readers, writers); every name
+    the module exported still comes from ``lrmfrf.io``."""
+    import lrmfrf.io
+    from lrmfrf.io import readers, writers
+
+    old = ["CSV_CHUNK_ROWS", "DEFAULT_MAX_SAMPLES", "FRF_COLUMNS",
+           "SUPPORTED_FORMATS", "DataFileError", "Measurement", "atomic_open",
+           "check_output_path", "file_sha256", "frf_table", "read_measurement",
+           "write_frf_csv", "write_frf_npz"]
+    assert set(old) <= set(lrmfrf.io.__all__)
+    for name in lrmfrf.io.__all__:
+        home = readers if name in readers.__all__ else writers
+        assert getattr(lrmfrf.io, name) is getattr(home, name)
