@@ -14,7 +14,10 @@ from hypothesis import strategies as st
 from lrmfrf.io import (
     FRF_COLUMNS,
     DataFileError,
+    OutputExistsError,
+    atomic_group,
     atomic_open,
+    check_output_folder,
     check_output_path,
     file_sha256,
     frf_table,
@@ -675,3 +678,55 @@ def test_every_public_name_of_the_old_module_imports_from_the_package():
     for name in lrmfrf.io.__all__:
         home = readers if name in readers.__all__ else writers
         assert getattr(lrmfrf.io, name) is getattr(home, name)
+
+
+def test_atomic_group_writes_all_files_or_none(tmp_path, monkeypatch):
+    folder = tmp_path / "new" / "out"
+    with pytest.raises(RuntimeError, match="late failure"):
+        with atomic_group() as group:
+            group.write_bytes(folder / "a.txt", b"a")
+            write_frf_csv(folder / "b.csv", frf_table(_FakeFit(
+                np.random.default_rng(0))), group=group)
+            raise RuntimeError("late failure")
+    assert list(tmp_path.iterdir()) == []  # no files, no folders left
+    (tmp_path / "a.txt").write_bytes(b"old a")
+    (tmp_path / "b.txt").write_bytes(b"old b")
+    real_replace = os.replace
+
+    def failing(src, dst):
+        if str(dst).endswith("b.txt"):
+            raise PermissionError(13, "Permission denied", str(dst))
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", failing)
+    with pytest.raises(PermissionError):
+        with atomic_group(overwrite=True) as group:
+            group.write_bytes(tmp_path / "a.txt", b"new a")
+            group.write_bytes(tmp_path / "b.txt", b"new b")
+            group.write_bytes(tmp_path / "c.txt", b"new c")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "b.txt"]
+    assert (tmp_path / "a.txt").read_bytes() == b"old a"
+    assert (tmp_path / "b.txt").read_bytes() == b"old b"
+    monkeypatch.setattr(os, "replace", real_replace)
+    with pytest.raises(OutputExistsError, match="a.txt: the output file exists"):
+        with atomic_group() as group:
+            group.write_bytes(tmp_path / "a.txt", b"x")
+    with atomic_group(overwrite=True) as group:
+        group.write_bytes(tmp_path / "a.txt", b"new a")
+        group.write_bytes(tmp_path / "d" / "e.txt", b"e")
+    assert (tmp_path / "a.txt").read_bytes() == b"new a"
+    assert (tmp_path / "d" / "e.txt").read_bytes() == b"e"
+    assert not [p for p in tmp_path.rglob(".*")]  # no temporaries, no backups
+
+
+def test_check_output_folder_messages(tmp_path):
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(ValueError, match=r"f: --out is a file, not a folder"):
+        check_output_folder(tmp_path / "f")
+    with pytest.raises(ValueError, match=r"its parent .*f is a file, not a folder\. "
+                       r"Choose a folder name"):
+        check_output_folder(tmp_path / "f" / "g" / "h")
+    with pytest.raises(ValueError, match="the output folder is the empty string"):
+        check_output_folder("")
+    assert check_output_folder(tmp_path / "new" / "x") == tmp_path / "new" / "x"
+    assert issubclass(OutputExistsError, FileExistsError)
