@@ -485,3 +485,340 @@ def test_fit_without_matplotlib_writes_the_rest_and_says_why(tmp_path):
     assert sorted(p.name for p in (tmp_path / "o").iterdir()) == [
         "frf.csv", "frf.npz", "report.txt"]
     assert hint in (tmp_path / "o" / "report.txt").read_text()
+
+
+# --------------------------------------------------------------------------
+# Issue 12: reading, outputs all or nothing, sample time, options
+# --------------------------------------------------------------------------
+
+
+def _run(args, capsys):
+    """main() in this process: (status, stdout, stderr)."""
+    capsys.readouterr()
+    try:
+        status = main([str(a) for a in args])
+    except SystemExit as exc:  # argparse usage errors
+        status = exc.code
+    captured = capsys.readouterr()
+    return status, captured.out, captured.err
+
+
+def test_one_character_cells_fit_from_the_command_line(tmp_path):
+    """Item 1: one-digit cells between empty cells were refused as 'n'."""
+    rng = np.random.default_rng(5)
+    u = rng.integers(0, 10, 600)
+    y = rng.integers(0, 10, 200)
+    lines = ["u,y"] + [f"{a},{y[k // 3] if k % 3 == 0 else ''}"
+                       for k, a in enumerate(u)]
+    (tmp_path / "d.csv").write_text("\n".join(lines) + "\n")
+    done = run_cli("fit", "d.csv", "--F", "3", "--sample-time", "1e-3", "--out",
+                   "o", "--no-plot", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert "non-numeric" not in done.stderr
+    report = (tmp_path / "o" / "report.txt").read_text()
+    assert "fast-rate column with slow samples at every F=3-th row, M=200" in report
+
+
+def _scaled_npz(tmp_path, records, scale):
+    u, y = records
+    np.savez(tmp_path / "scaled.npz", u=u * scale, y=y * scale)
+    return tmp_path / "scaled.npz"
+
+
+def test_failure_at_the_last_output_leaves_no_output(tmp_path, records, capsys,
+                                                     monkeypatch):
+    """Item 3: everything is computed first; a failure while writing the last
+    file (report.txt) leaves none of the four files, nor the folder made."""
+    from lrmfrf.io import writers
+
+    data = _scaled_npz(tmp_path, records, 1.0)
+    real_write = writers.AtomicGroup.write_bytes
+
+    def failing(self, path, content):
+        if Path(path).name == "report.txt":
+            raise OSError(28, "No space left on device", str(path))
+        return real_write(self, path, content)
+
+    monkeypatch.setattr(writers.AtomicGroup, "write_bytes", failing)
+    status, _, err = _run(["fit", data, *FIT, "--out", tmp_path / "new" / "o"],
+                          capsys)
+    assert status == 1 and "No space left on device" in err
+    assert not (tmp_path / "new").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scaled.npz"]
+
+
+def test_failure_while_moving_the_last_output_restores_the_old_files(
+        tmp_path, records, capsys, monkeypatch):
+    """Item 3, commit step: with --force over an earlier run, a failing
+    os.replace of report.txt puts every old file back and leaves no new one."""
+    data = _scaled_npz(tmp_path, records, 1.0)
+    out = tmp_path / "o"
+    assert _run(["fit", data, *FIT, "--no-plot", "--out", out], capsys)[0] == 0
+    before = {p.name: sha256(p) for p in out.iterdir()}
+    real_replace = os.replace
+
+    def failing(src, dst):
+        if Path(dst).name == "report.txt":
+            raise PermissionError(13, "Permission denied", str(dst))
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", failing)
+    status, _, err = _run(["fit", data, *FIT, "--method", "sa", "--out", out,
+                           "--force"], capsys)
+    assert status == 1 and "Permission denied" in err
+    assert {p.name: sha256(p) for p in out.iterdir()} == before  # no bode.png
+
+
+def test_huge_scale_gives_all_outputs_or_none(tmp_path, records, capsys):
+    """Item 3: SA on data scaled by 1e300 wrote NaN tables marked valid and no
+    report. Now either the run succeeds with finite valid bins, or it fails and
+    writes nothing."""
+    data = _scaled_npz(tmp_path, records, 1e300)
+    out = tmp_path / "o"
+    status, _, err = _run(["fit", data, *FIT, "--method", "sa", "--out", out],
+                          capsys)
+    if status == 0:
+        assert sorted(p.name for p in out.iterdir()) == sorted(
+            ["bode.png", "frf.csv", "frf.npz", "report.txt"])
+        with np.load(out / "frf.npz") as saved:
+            valid = saved["valid"]
+            assert np.isfinite(saved["frf"][valid]).all()
+    else:
+        assert status == 1 and "not finite" in err, err
+        assert not out.exists()
+
+
+def test_sample_time_from_the_file_and_contradictions(tmp_path, records, capsys):
+    """Item 13: a contradicting --sample-time is refused; an omitted one is the
+    file's (NPZ key, CSV time column)."""
+    u, y = records
+    np.savez(tmp_path / "d.npz", u=u, y=y, sample_time=0.5e-3)
+    status, _, err = _run(["fit", tmp_path / "d.npz", "--F", "3", "--sample-time",
+                           "1e-3", "--out", tmp_path / "a"], capsys)
+    assert status == 1
+    assert "the sample time 0.001 s was passed but its array 'sample_time' says " \
+           "0.0005 s" in err and "omit --sample-time" in err
+    assert not (tmp_path / "a").exists()
+    status, _, err = _run(["fit", tmp_path / "d.npz", "--F", "3", "--no-plot",
+                           "--out", tmp_path / "b"], capsys)
+    assert status == 0, err
+    report = (tmp_path / "b" / "report.txt").read_text()
+    assert "fast sample time: 0.0005 s (slow sample time 0.0015 s; read from the " \
+           "file)" in report
+    assert "slow Nyquist frequency: 333.333 Hz" in report
+
+    lines = ["time,u,y"] + [f"{k * 1e-3:.3f},{float(a)!r},"
+                            f"{repr(float(y[k // 3])) if k % 3 == 0 else ''}"
+                            for k, a in enumerate(u)]
+    (tmp_path / "t.csv").write_text("\n".join(lines) + "\n")
+    status, _, err = _run(["fit", tmp_path / "t.csv", "--F", "3", "--sample-time",
+                           "0.5e-3", "--out", tmp_path / "c"], capsys)
+    assert status == 1 and "its time column 'time' says 0.001 s" in err
+    status, _, err = _run(["fit", tmp_path / "t.csv", "--F", "3", "--sample-time",
+                           "0.5e-3", "--time-column", "none", "--no-plot", "--out",
+                           tmp_path / "d"], capsys)
+    assert status == 0, err
+
+
+def test_F_from_the_npz_and_contradiction(tmp_path, records, capsys):
+    status, _, err = _run(["fit", EXAMPLE_NPZ, "--no-plot", "--out",
+                           tmp_path / "a"], capsys)
+    assert status == 0, err
+    assert "F=3 read from its array 'downsampling_factor'" in (
+        tmp_path / "a" / "report.txt").read_text()
+    status, _, err = _run(["fit", EXAMPLE_NPZ, "--F", "2", "--out", tmp_path / "b"],
+                          capsys)
+    assert status == 1 and "F=2 was passed but its array 'downsampling_factor' " \
+                           "says F=3" in err
+
+
+def test_F_accepts_integral_values_like_the_api(tmp_path, capsys):
+    """Item 6/19: --F 3.0 is 3 (as fit(..., F=3.0)); --F 3.5 is refused."""
+    status, _, err = _run(["fit", EXAMPLE_CSV, "--F", "3.0", "--no-plot", "--out",
+                           tmp_path / "a"], capsys)
+    assert status == 0, err
+    status, out, err = _run(["fit", EXAMPLE_CSV, "--F", "3.5", "--out",
+                             tmp_path / "b"], capsys)
+    _check_one_line(status, out, err, 2, ["--F", "expected a positive integer, "
+                                          "got '3.5'"])
+
+
+def test_out_under_a_file_and_empty_out(tmp_path, capsys):
+    """Item 6: --out whose parent is a file gave a bare Errno; --out '' meant
+    the current folder."""
+    (tmp_path / "plain").write_text("x")
+    status, out, err = _run(["fit", EXAMPLE_CSV, *FIT, "--out",
+                             tmp_path / "plain" / "o"], capsys)
+    _check_one_line(status, out, err, 1, ["its parent", "plain is a file, not a "
+                                          "folder", "Choose a folder name"])
+    assert "Errno" not in err
+    status, out, err = _run(["fit", EXAMPLE_CSV, *FIT, "--out", ""], capsys)
+    _check_one_line(status, out, err, 2, ["--out", "expected a folder name",
+                                          "'.' for the current folder"])
+    status, out, err = _run(["example-data", "--out", ""], capsys)
+    assert status == 2
+    for command in (["demo"], ["example-data"]):
+        status, out, err = _run([*command, "--out", tmp_path / "plain" / "o"],
+                                capsys)
+        _check_one_line(status, out, err, 1, ["plain is a file, not a folder"])
+
+
+def test_warnings_are_one_line_and_quiet_silences_them(tmp_path, capsys,
+                                                       monkeypatch):
+    """Item 6: a Python warning outside the fit (here from the plot) was shown
+    in Python's format (file, line, source); now one line, none with --quiet."""
+    import warnings
+
+    import lrmfrf.plotting
+
+    real = lrmfrf.plotting.plot_frf
+
+    def warning_plot(*args, **kwargs):
+        warnings.warn("the plot is crowded", UserWarning, stacklevel=2)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(lrmfrf.plotting, "plot_frf", warning_plot)
+    status, _, err = _run(["fit", EXAMPLE_CSV, *FIT, "--out", tmp_path / "a"],
+                          capsys)
+    assert status == 0
+    assert err.strip().splitlines() == ["lrmfrf: warning: the plot is crowded"]
+    status, out, err = _run(["fit", EXAMPLE_CSV, *FIT, "--quiet", "--out",
+                             tmp_path / "b"], capsys)
+    assert status == 0 and out == "" and err == ""
+
+
+def test_quiet_silences_estimator_warnings(tmp_path, capsys):
+    U = np.zeros(301, complex)
+    U[1:60] = np.exp(2j * np.pi * np.random.default_rng(3).random(59))
+    u_low = np.fft.irfft(U, 600)
+    y = np.convolve(u_low, [0.5, 0.2])[:600][::3]
+    write_csv(tmp_path / "low.csv", u_low, fast_column(y, 3))
+    status, out, err = _run(["fit", tmp_path / "low.csv", *FIT, "--den-degree", "1",
+                             "--no-plot", "--quiet", "--out", tmp_path / "o"],
+                            capsys)
+    assert status == 0 and out == "" and err == ""
+    assert "not identifiable" in (tmp_path / "o" / "report.txt").read_text()
+
+
+def test_existing_output_message_names_force_not_the_api(tmp_path, capsys):
+    """Item 14: CLI text says --force, not (overwrite=True)."""
+    assert _run(["fit", EXAMPLE_CSV, *FIT, "--no-plot", "--out", tmp_path],
+                capsys)[0] == 0
+    status, out, err = _run(["fit", EXAMPLE_CSV, *FIT, "--out", tmp_path], capsys)
+    _check_one_line(status, out, err, 1, ["exists already", "Pass --force"])
+    assert "overwrite" not in err
+
+
+def test_sk_iterations_and_num_degree_reach_the_estimator(tmp_path, capsys):
+    status, _, err = _run(["fit", EXAMPLE_CSV, *FIT, "--sk-iterations", "2",
+                           "--num-degree", "3", "--no-plot", "--out",
+                           tmp_path / "a"], capsys)
+    assert status == 0, err
+    report = (tmp_path / "a" / "report.txt").read_text()
+    assert "set on the command line: num_degree=3, sk_iterations=2" in report
+    assert "sk_iterations=2" in report.split("estimator parameters:")[1]
+    status, out, err = _run(["fit", EXAMPLE_CSV, *FIT, "--method", "lpm",
+                             "--sk-iterations", "1", "--out", tmp_path / "b"],
+                            capsys)
+    _check_one_line(status, out, err, 2, ["--sk-iterations", "does not apply",
+                                          "--method lpm"])
+
+
+def test_lpm_num_degree_and_deprecated_degree(tmp_path, capsys):
+    """Item 8: --num-degree for LPM; --degree still works for one release with
+    a deprecation line on stderr; both together are refused."""
+    status, _, err = _run(["fit", EXAMPLE_CSV, *FIT, "--method", "lpm",
+                           "--num-degree", "3", "--no-plot", "--out",
+                           tmp_path / "a"], capsys)
+    assert status == 0 and err == ""
+    new = (tmp_path / "a" / "frf.csv").read_text()
+    status, _, err = _run(["fit", EXAMPLE_CSV, *FIT, "--method", "lpm",
+                           "--degree", "3", "--no-plot", "--out", tmp_path / "b"],
+                          capsys)
+    assert status == 0
+    assert err.strip().splitlines() == [
+        "lrmfrf: warning: --degree is deprecated and will be removed in the next "
+        "release; use --num-degree"]
+    assert (tmp_path / "b" / "frf.csv").read_text() == new
+    status, out, err = _run(["fit", EXAMPLE_CSV, *FIT, "--method", "lpm",
+                             "--degree", "3", "--num-degree", "3", "--out",
+                             tmp_path / "c"], capsys)
+    _check_one_line(status, out, err, 2, ["--degree and --num-degree"])
+
+
+@pytest.mark.parametrize("method", ["lrm", "lpm"])
+def test_select_fits_the_cv_class(tmp_path, capsys, monkeypatch, method):
+    """Item 14: --select CRITERION goes through LRM/LPMBeyondNyquistCV."""
+    from lrmfrf.estimators import selection
+
+    seen = []
+    name = {"lrm": "LRMBeyondNyquistCV", "lpm": "LPMBeyondNyquistCV"}[method]
+    real = getattr(selection, name)
+
+    class Spy(real):
+        def fit(self, *args, **kwargs):
+            seen.append(self.criterion)
+            return super().fit(*args, **kwargs)
+
+    monkeypatch.setattr(selection, name, Spy)
+    status, _, err = _run(["fit", EXAMPLE_CSV, *FIT, "--method", method,
+                           "--select", "gcv", "--no-plot", "--out", tmp_path],
+                          capsys)
+    assert status == 0, err
+    assert seen == ["gcv"]
+    report = (tmp_path / "report.txt").read_text()
+    line = next(x for x in report.splitlines() if x.startswith("selected by gcv: "))
+    assert "half_window=" in line and "transient_degree=" in line
+
+
+@pytest.mark.parametrize("args, fragments", [
+    (["--method", "sa", "--select", "aicc"], ["--select applies to --method lrm "
+                                               "or lpm, not sa"]),
+    (["--select", "aicc", "--half-window", "9"], ["--half-window does not apply "
+                                                   "with --select"]),
+    (["--select", "bic"], ["--select", "invalid choice"]),
+    (["--freq-range", "100", "50"], ["--freq-range 100 50: LO must be below HI"]),
+    (["--freq-range", "10", "100", "--no-plot"], ["--no-plot"]),
+])
+def test_option_combinations_refused(tmp_path, capsys, args, fragments):
+    status, out, err = _run(["fit", EXAMPLE_CSV, *FIT, *args, "--out", tmp_path],
+                            capsys)
+    _check_one_line(status, out, err, 2, fragments)
+
+
+def test_freq_range_and_units_reach_the_bode_plot(tmp_path, capsys, monkeypatch):
+    import lrmfrf.plotting
+
+    calls = []
+    real = lrmfrf.plotting.plot_frf
+
+    def spy(*args, **kwargs):
+        calls.append(kwargs)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(lrmfrf.plotting, "plot_frf", spy)
+    status, _, err = _run(["fit", EXAMPLE_CSV, *FIT, "--freq-range", "50", "500",
+                           "--units", "m/N", "--out", tmp_path], capsys)
+    assert status == 0, err
+    assert calls[0]["freq_range"] == (50.0, 500.0) and calls[0]["units"] == "m/N"
+    assert (tmp_path / "bode.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_every_option_has_help_text():
+    """Item 14: diagnose --help had no help for its column options."""
+    from lrmfrf.cli import build_parser
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command")
+    for command, subparser in sub.choices.items():
+        for action in subparser._actions:
+            assert action.help, (command, action.option_strings or action.dest)
+
+
+def test_console_script_entry_point_still_resolves():
+    """pyproject's `lrmfrf = "lrmfrf.cli:main"` and `python -m lrmfrf.cli`."""
+    import importlib
+
+    assert importlib.import_module("lrmfrf.cli").main is main
+    done = run_cli("--version", cwd=REPO)
+    assert done.returncode == 0 and done.stdout.startswith("lrmfrf ")

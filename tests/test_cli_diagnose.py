@@ -67,3 +67,124 @@ def test_diagnose_command_bad_model(files, model, match):
     assert match in done.stderr
     assert len(done.stderr.strip().splitlines()) == 1
     assert "Traceback" not in done.stderr
+
+
+# --------------------------------------------------------------------------
+# Issue 12: names, sample time, outputs all or nothing (in-process, stubbed)
+# --------------------------------------------------------------------------
+
+
+class _Report:
+    def __init__(self, fail_plot=False):
+        self.fail_plot = fail_plot
+
+    def summary(self):
+        return "diagnosis: nothing missing\n"
+
+    def to_dict(self):
+        return {"findings": []}
+
+    def plot(self):
+        if self.fail_plot:
+            raise RuntimeError("figure failed")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots()
+        return {"figure": fig, "axes": ax}
+
+
+def _stub(monkeypatch, signature: str, calls: list, report=None):
+    """Replace lrmfrf.discrepancy.diagnose by a stub with the given keywords."""
+    namespace = {}
+    exec(f"def diagnose(plant, u_h, y_l, F, *, controller=None, {signature}):\n"
+         "    calls.append(dict(locals()))\n"
+         "    return report\n", {"calls": calls, "report": report or _Report()},
+         namespace)
+    import lrmfrf.discrepancy
+
+    monkeypatch.setattr(lrmfrf.discrepancy, "diagnose", namespace["diagnose"])
+
+
+def _main(args, capsys):
+    from lrmfrf.cli import main
+
+    capsys.readouterr()
+    try:
+        status = main([str(a) for a in args])
+    except SystemExit as exc:
+        status = exc.code
+    captured = capsys.readouterr()
+    return status, captured.out, captured.err
+
+
+@pytest.fixture
+def plain_data(tmp_path):
+    rng = np.random.default_rng(4)
+    np.savez(tmp_path / "plain.npz", u=rng.standard_normal(600),
+             y=rng.standard_normal(200))
+    (tmp_path / "model.py").write_text(MODEL)
+    return tmp_path
+
+
+def test_diagnose_passes_the_new_names(plain_data, capsys, monkeypatch):
+    """Item 8: --seed goes to rng=, --smoothing-bins to smoothing_bins=, and the
+    sample time comes from the model's dt when neither flag nor file has it."""
+    calls = []
+    _stub(monkeypatch, "rng=None, smoothing_bins=9, sample_time=None", calls)
+    status, _, err = _main(["diagnose", plain_data / "model.py",
+                            plain_data / "plain.npz", "--F", "3", "--seed", "5",
+                            "--smoothing-bins", "7", "--no-plot", "--out",
+                            plain_data / "o"], capsys)
+    assert status == 0, err
+    assert calls[0]["rng"] == 5 and calls[0]["smoothing_bins"] == 7
+    assert calls[0]["sample_time"] == pytest.approx(wafer_stage().plant.dt)
+    assert sorted(p.name for p in (plain_data / "o").iterdir()) == [
+        "diagnosis.json", "diagnosis.txt"]
+
+
+def test_diagnose_before_the_rename(plain_data, capsys, monkeypatch):
+    calls = []
+    _stub(monkeypatch, "sample_time, random_state=None, window=9", calls)
+    status, _, err = _main(["diagnose", plain_data / "model.py",
+                            plain_data / "plain.npz", "--F", "3", "--sample-time",
+                            "1e-3", "--smoothing-bins", "5", "--no-plot", "--out",
+                            plain_data / "o"], capsys)
+    assert status == 0, err
+    assert calls[0]["random_state"] == 0 and calls[0]["window"] == 5
+    assert calls[0]["sample_time"] == 1e-3
+
+
+def test_diagnose_needs_a_sample_time_from_somewhere(plain_data, capsys,
+                                                     monkeypatch):
+    (plain_data / "ct.py").write_text("import control\n"
+                                      "plant = control.tf([1], [1, 1])\n")
+    _stub(monkeypatch, "sample_time, random_state=None", [])
+    status, out, err = _main(["diagnose", plain_data / "ct.py",
+                              plain_data / "plain.npz", "--F", "3", "--out",
+                              plain_data / "o"], capsys)
+    assert status == 2 and out == ""
+    assert "--sample-time is required" in err and len(err.splitlines()) == 1
+
+
+def test_diagnose_refuses_a_contradicting_sample_time(files, capsys):
+    rng = np.random.default_rng(6)
+    np.savez(files / "stamped.npz", u=rng.standard_normal(600),
+             y=rng.standard_normal(200), sample_time=0.5e-3)
+    status, _, err = _main(["diagnose", files / "model.py", files / "stamped.npz",
+                            "--F", "3", "--sample-time", "1e-3", "--out",
+                            files / "contradiction"], capsys)
+    assert status == 1
+    assert "its array 'sample_time' says 0.0005 s" in err
+    assert not (files / "contradiction").exists()
+
+
+def test_diagnose_outputs_all_or_nothing(plain_data, capsys, monkeypatch):
+    """Item 3: the figure is drawn before anything is written; its failure
+    leaves no diagnosis.txt/.json."""
+    _stub(monkeypatch, "sample_time=None, rng=None", [],
+          report=_Report(fail_plot=True))
+    status, _, err = _main(["diagnose", plain_data / "model.py",
+                            plain_data / "plain.npz", "--F", "3", "--out",
+                            plain_data / "o"], capsys)
+    assert status == 1 and "figure failed" in err
+    assert not (plain_data / "o").exists()

@@ -11,11 +11,13 @@ import scipy.io
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from lrmfrf import io as lio
 from lrmfrf.io import (
     FRF_COLUMNS,
     DataFileError,
+    OutputExistsError,
+    atomic_group,
     atomic_open,
+    check_output_folder,
     check_output_path,
     file_sha256,
     frf_table,
@@ -23,6 +25,7 @@ from lrmfrf.io import (
     write_frf_csv,
     write_frf_npz,
 )
+from lrmfrf.io import readers as lio
 
 
 def _records(rng, M=40, F=3):
@@ -106,6 +109,17 @@ def test_csv_nan_text_between_samples_is_accepted(tmp_path):
     col[::3] = list(y)
     data = read_measurement(write_csv(tmp_path / "d.csv", {"u": u, "y": col}), F=3)
     np.testing.assert_array_equal(data.y_l, y)
+
+
+def test_csv_one_character_cells_between_empty_cells(tmp_path):
+    """Issue 12 item 1: one-character numbers and empty cells in one column
+    were parsed as a '<U1' array that cut the "nan" fill to "n"."""
+    path = tmp_path / "d.csv"
+    path.write_text("u,y\n7,6\n3,\n0,\n1,2\n4,\n5,\n")
+    data = read_measurement(path, F=3)
+    np.testing.assert_array_equal(data.u_h, [7.0, 3.0, 0.0, 1.0, 4.0, 5.0])
+    np.testing.assert_array_equal(data.y_l, [6.0, 2.0])
+    assert data.output_layout == "fast"
 
 
 def test_csv_chunk_boundaries_do_not_change_result(tmp_path, monkeypatch):
@@ -502,3 +516,217 @@ def test_shipped_example_is_what_the_script_simulates(tmp_path):
         b = read_measurement(shipped_dir / name, F=3)
         np.testing.assert_array_equal(a.u_h, b.u_h)
         np.testing.assert_allclose(a.y_l, b.y_l, rtol=1e-9)
+
+
+# --------------------------------------------------------------------------
+# Sample time and F stored in the file (issue 12 item 13)
+# --------------------------------------------------------------------------
+
+
+def test_npz_sample_time_and_F_are_read_and_checked(tmp_path, good):
+    u, y = good
+    np.savez(tmp_path / "d.npz", u=u, y=y, sample_time=0.5e-3,
+             downsampling_factor=3)
+    data = read_measurement(tmp_path / "d.npz")
+    assert data.downsampling_factor == 3
+    assert data.sample_time == 0.5e-3 and data.sample_time_source == "file"
+    agreed = read_measurement(tmp_path / "d.npz", F=3.0, sample_time=0.5e-3)
+    assert agreed.sample_time == 0.5e-3
+    assert any("agrees with its array 'sample_time'" in c for c in agreed.checks)
+    with pytest.raises(DataFileError, match=r"the sample time 0\.001 s was passed "
+                       r"but its array 'sample_time' says 0\.0005 s \(ratio 2\).*"
+                       r"omit --sample-time"):
+        read_measurement(tmp_path / "d.npz", sample_time=1e-3)
+    with pytest.raises(DataFileError, match=r"F=4 was passed but its array "
+                       r"'downsampling_factor' says F=3\. Pass the file's F"):
+        read_measurement(tmp_path / "d.npz", F=4)
+
+
+def test_F_missing_everywhere_and_bad_stored_values(tmp_path, good):
+    u, y = good
+    np.savez(tmp_path / "plain.npz", u=u, y=y)
+    with pytest.raises(DataFileError, match=r"no downsampling factor F was passed "
+                       r"and the file stores none.*Pass F \(--F\)"):
+        read_measurement(tmp_path / "plain.npz")
+    assert read_measurement(tmp_path / "plain.npz", F=3).sample_time is None
+    np.savez(tmp_path / "half.npz", u=u, y=y, F=2.5)
+    with pytest.raises(DataFileError, match="its array 'F' is 2.5, not a positive "
+                       "integer"):
+        read_measurement(tmp_path / "half.npz")
+    np.savez(tmp_path / "neg.npz", u=u, y=y, sample_time=-1.0)
+    with pytest.raises(DataFileError, match="'sample_time' is -1.0, not a positive"):
+        read_measurement(tmp_path / "neg.npz", F=3)
+    np.savez(tmp_path / "vec.npz", u=u, y=y, sample_time=[1e-3, 2e-3])
+    with pytest.raises(DataFileError, match="'sample_time' is not a real number"):
+        read_measurement(tmp_path / "vec.npz", F=3)
+    np.savez(tmp_path / "two.npz", u=u, y=y, F=3, downsampling_factor=4)
+    with pytest.raises(DataFileError, match="contradicting values"):
+        read_measurement(tmp_path / "two.npz")
+
+
+def test_mat_sample_time_and_F_are_read(tmp_path, good):
+    u, y = good
+    scipy.io.savemat(tmp_path / "d.mat", {"u": u, "y": y, "sample_time": 2e-3,
+                                          "F": 3})
+    data = read_measurement(tmp_path / "d.mat")
+    assert (data.downsampling_factor, data.sample_time) == (3, 2e-3)
+    with pytest.raises(DataFileError, match="its variable 'sample_time' says"):
+        read_measurement(tmp_path / "d.mat", sample_time=1e-3)
+
+
+@pytest.mark.parametrize("name, scale", [("t", 1.0), ("time", 1.0), ("Time_s", 1.0),
+                                         ("time_ms", 1e3), ("t_us", 1e6)])
+def test_csv_time_column_gives_the_sample_time(tmp_path, good, name, scale):
+    u, y = good
+    time = [f"{k * 1e-3 * scale:.6f}" for k in range(u.size)]
+    path = write_csv(tmp_path / "d.csv", {name: time, "u": u,
+                                          "y": fast_column(y, 3)})
+    data = read_measurement(path, F=3)
+    assert data.sample_time == pytest.approx(1e-3, rel=1e-12)
+    read_measurement(path, F=3, sample_time=1.0005e-3)  # within 0.1 %
+    with pytest.raises(DataFileError, match=rf"the sample time 0\.0005 s was passed "
+                       rf"but its time column '{name}' says 0\.001 s"):
+        read_measurement(path, F=3, sample_time=0.5e-3)
+    ignored = read_measurement(path, F=3, sample_time=0.5e-3, time_column=None)
+    assert ignored.sample_time == 0.5e-3
+
+
+def test_shipped_example_csv_time_column(tmp_path):
+    from importlib.resources import files
+
+    data = read_measurement(files("lrmfrf") / "data" / "wafer_stage_example.csv",
+                            F=3)
+    assert data.sample_time == pytest.approx(0.5e-3, rel=1e-9)
+
+
+def test_csv_time_column_must_be_uniform_and_complete(tmp_path, good):
+    u, y = good
+    time = [k * 1e-3 + (0.5e-3 if k >= 10 else 0.0) for k in range(u.size)]
+    path = write_csv(tmp_path / "d.csv", {"t": time, "u": u, "y": fast_column(y, 3)})
+    with pytest.raises(DataFileError, match=r"time column 't' is not uniformly "
+                       r"increasing .* the step from line 11 to the next row is "
+                       r"0\.0015 s.*--time-column none"):
+        read_measurement(path, F=3)
+    assert read_measurement(path, F=3, time_column=None).sample_time is None
+    time = [k * 1e-3 for k in range(u.size)]
+    time[5] = None
+    path = write_csv(tmp_path / "e.csv", {"t": time, "u": u, "y": fast_column(y, 3)})
+    with pytest.raises(DataFileError, match=r"time column 't' has 1 empty.*line 7"):
+        read_measurement(path, F=3)
+    path = write_csv(tmp_path / "f.csv", {"clock": [k * 2e-3 for k in range(60)],
+                                          "u": u, "y": fast_column(y, 3)})
+    assert read_measurement(path, F=3).sample_time is None  # not a time name
+    named = read_measurement(path, F=3, time_column="clock")
+    assert named.sample_time == pytest.approx(2e-3)
+    with pytest.raises(DataFileError, match="no column named 'when'.*--time-column"):
+        read_measurement(path, F=3, time_column="when")
+    with pytest.raises(DataFileError, match="is also the input or the output"):
+        read_measurement(path, F=3, time_column="u")
+
+
+# --------------------------------------------------------------------------
+# The pandas parser and its cell-by-cell fallback agree (issue 12 item 12)
+# --------------------------------------------------------------------------
+
+
+def test_cells_pandas_leaves_as_text_are_parsed_as_before(tmp_path):
+    """Blanks around numbers, inf/Infinity spellings and integers beyond 64 bits
+    take the cell-by-cell path; the values are numpy's."""
+    text = ("u,y\n 1.5 ,2\n2, 99999999999999999999999 \n-3,inf\n4,-Infinity\n"
+            "5,NaN\n6,nan\n")
+    path = tmp_path / "d.csv"
+    path.write_text(text)
+    u, y = lio._csv_columns(path, ["u", "y"], ",", 1, [0, 1], 100, capacity=8)
+    np.testing.assert_array_equal(u, [1.5, 2, -3, 4, 5, 6])
+    np.testing.assert_array_equal(y, [2, 1e23, np.inf, -np.inf, np.nan, np.nan])
+
+
+def test_rows_shorter_or_longer_than_the_header(tmp_path):
+    path = tmp_path / "d.csv"
+    path.write_text("u,y\n1,5,extra\n2\n3,6\n4,,more,cells\n")
+    data = read_measurement(path, F=2)
+    np.testing.assert_array_equal(data.u_h, [1, 2, 3, 4])
+    np.testing.assert_array_equal(data.y_l, [5, 6])
+
+
+def test_huge_values_are_read_without_overflow_warnings(tmp_path, good):
+    """The RMS in the checks squared the data: 1e300 overflowed with a
+    RuntimeWarning; it is scaled first now (the RMS of c*x is c*RMS(x))."""
+    import warnings
+
+    u, y = good
+    np.savez(tmp_path / "d.npz", u=u * 1e300, y=y * 1e300)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        data = read_measurement(tmp_path / "d.npz", F=3)
+    rms = float(np.sqrt(np.mean(u**2)))
+    line = next(c for c in data.checks if c.startswith("input RMS"))
+    assert line.startswith(f"input RMS {rms * 1e300:.4g}, ")
+
+
+def test_every_public_name_of_the_old_module_imports_from_the_package():
+    """Item 11: lrmfrf/io.py became lrmfrf/io/ (readers, writers); every name
+    the module exported still comes from ``lrmfrf.io``."""
+    import lrmfrf.io
+    from lrmfrf.io import readers, writers
+
+    old = ["CSV_CHUNK_ROWS", "DEFAULT_MAX_SAMPLES", "FRF_COLUMNS",
+           "SUPPORTED_FORMATS", "DataFileError", "Measurement", "atomic_open",
+           "check_output_path", "file_sha256", "frf_table", "read_measurement",
+           "write_frf_csv", "write_frf_npz"]
+    assert set(old) <= set(lrmfrf.io.__all__)
+    for name in lrmfrf.io.__all__:
+        home = readers if name in readers.__all__ else writers
+        assert getattr(lrmfrf.io, name) is getattr(home, name)
+
+
+def test_atomic_group_writes_all_files_or_none(tmp_path, monkeypatch):
+    folder = tmp_path / "new" / "out"
+    with pytest.raises(RuntimeError, match="late failure"):
+        with atomic_group() as group:
+            group.write_bytes(folder / "a.txt", b"a")
+            write_frf_csv(folder / "b.csv", frf_table(_FakeFit(
+                np.random.default_rng(0))), group=group)
+            raise RuntimeError("late failure")
+    assert list(tmp_path.iterdir()) == []  # no files, no folders left
+    (tmp_path / "a.txt").write_bytes(b"old a")
+    (tmp_path / "b.txt").write_bytes(b"old b")
+    real_replace = os.replace
+
+    def failing(src, dst):
+        if str(dst).endswith("b.txt"):
+            raise PermissionError(13, "Permission denied", str(dst))
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", failing)
+    with pytest.raises(PermissionError):
+        with atomic_group(overwrite=True) as group:
+            group.write_bytes(tmp_path / "a.txt", b"new a")
+            group.write_bytes(tmp_path / "b.txt", b"new b")
+            group.write_bytes(tmp_path / "c.txt", b"new c")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "b.txt"]
+    assert (tmp_path / "a.txt").read_bytes() == b"old a"
+    assert (tmp_path / "b.txt").read_bytes() == b"old b"
+    monkeypatch.setattr(os, "replace", real_replace)
+    with pytest.raises(OutputExistsError, match="a.txt: the output file exists"):
+        with atomic_group() as group:
+            group.write_bytes(tmp_path / "a.txt", b"x")
+    with atomic_group(overwrite=True) as group:
+        group.write_bytes(tmp_path / "a.txt", b"new a")
+        group.write_bytes(tmp_path / "d" / "e.txt", b"e")
+    assert (tmp_path / "a.txt").read_bytes() == b"new a"
+    assert (tmp_path / "d" / "e.txt").read_bytes() == b"e"
+    assert not [p for p in tmp_path.rglob(".*")]  # no temporaries, no backups
+
+
+def test_check_output_folder_messages(tmp_path):
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(ValueError, match=r"f: --out is a file, not a folder"):
+        check_output_folder(tmp_path / "f")
+    with pytest.raises(ValueError, match=r"its parent .*f is a file, not a folder\. "
+                       r"Choose a folder name"):
+        check_output_folder(tmp_path / "f" / "g" / "h")
+    with pytest.raises(ValueError, match="the output folder is the empty string"):
+        check_output_folder("")
+    assert check_output_folder(tmp_path / "new" / "x") == tmp_path / "new" / "x"
+    assert issubclass(OutputExistsError, FileExistsError)

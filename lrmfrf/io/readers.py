@@ -1,13 +1,15 @@
-"""Reading measured records and writing results safely.
+"""Reading measured records: CSV, NumPy ``.npz`` and MATLAB ``.mat`` files.
 
-Reading (:func:`read_measurement`) takes a fast input ``u_h`` and a slow output
-``y_l`` from
+:func:`read_measurement` takes a fast input ``u_h`` and a slow output ``y_l``
+from
 
 - **CSV** (``.csv``, ``.txt``): a header row naming the columns (comma,
   semicolon or tab separated; ``#`` comment lines before the header are
   skipped). The slow output is either its own column of ``M`` values (the
   shorter column padded with empty cells) or a fast-rate column that holds
-  values only at rows ``m F`` and empty (or ``nan``) cells between them.
+  values only at rows ``m F`` and empty (or ``nan``) cells between them. The
+  cells are parsed by pandas' C parser; a block that holds anything but plain
+  numbers is parsed again cell by cell, to name the offending cell and line.
 - **NumPy** ``.npz``: arrays named like the columns, loaded with
   ``allow_pickle=False`` after their headers were checked (numeric, real,
   1-D or a vector, size within the limit).
@@ -15,82 +17,93 @@ Reading (:func:`read_measurement`) takes a fast input ``u_h`` and a slow output
   with :func:`scipy.io.whosmat` (numeric class, vector, size) before they are
   loaded, and checked to be real after.
 
+Sample time and downsampling factor stored in the file are read and checked
+against the values passed: an ``.npz`` or ``.mat`` file may hold scalars
+``sample_time`` (seconds) and ``downsampling_factor`` (or ``F``); a CSV file
+may hold a time column (:data:`TIME_COLUMNS`: ``t``, ``time``, ``time_s``,
+``time_ms``, ...), whose uniform step is the sample time. A value passed that
+contradicts the file is refused; a value not passed is taken from the file.
+
 Every problem raises :class:`DataFileError` (a ``ValueError``) whose message
 names the file, the problem and the fix. Inputs are never modified.
 
-Size: CSV files are streamed in chunks of :data:`CSV_CHUNK_ROWS` rows into two
+Size: CSV files are parsed in blocks of :data:`CSV_CHUNK_ROWS` rows into
 ``float64`` columns allocated once (from a count of the file's lines), so the
-memory is about 16 bytes per row (the two columns) plus one chunk, and the slow
-output at most 8 more per row after the record is complete. Files with more
-than ``max_samples`` rows (default :data:`DEFAULT_MAX_SAMPLES`, 20 million)
-are refused with a message before they fill memory. ``.npz`` and ``.mat``
-sizes are checked from their headers before loading, and the arrays are not
-copied again when they are ``float64`` already.
-
-Writing (:func:`atomic_open`, :func:`write_frf_csv`, :func:`write_frf_npz`)
-goes to a temporary file in the target folder, then ``os.replace``: a reader
-never sees a half-written file, an existing file is kept unless
-``overwrite=True``, and a file listed in ``protect`` (the inputs) is never
-replaced.
+memory is about 8 bytes per row and column read (two, three with a time
+column) plus one block. Files with more than ``max_samples`` rows (default
+:data:`DEFAULT_MAX_SAMPLES`, 20 million) are refused with a message before
+they fill memory. ``.npz`` and ``.mat`` sizes are checked from their headers
+before loading, and the arrays are not copied again when they are ``float64``
+already.
 """
 
 from __future__ import annotations
 
-import csv
 import hashlib
-import io
-import itertools
 import logging
+import math
 import os
-import tempfile
 import zipfile
-from collections.abc import Iterable, Iterator, Sequence
-from contextlib import contextmanager, suppress
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import BinaryIO
 
 import numpy as np
 
-from ._validation import check_downsampling_factor
+from .._validation import check_downsampling_factor, check_sample_time
 
 __all__ = [
     "CSV_CHUNK_ROWS",
     "DEFAULT_MAX_SAMPLES",
-    "FRF_COLUMNS",
+    "SAMPLE_TIME_RTOL",
     "SUPPORTED_FORMATS",
+    "TIME_COLUMNS",
     "DataFileError",
     "Measurement",
-    "atomic_open",
-    "check_output_path",
     "file_sha256",
-    "frf_table",
     "read_measurement",
-    "write_frf_csv",
-    "write_frf_npz",
 ]
 
-logger = logging.getLogger(__name__)
+logger = logging.getLogger("lrmfrf.io")
 
 #: Largest number of samples (CSV rows, array elements) read by default.
 DEFAULT_MAX_SAMPLES = 20_000_000
 
-#: CSV rows parsed per chunk.
+#: CSV rows parsed per block (and written per block by the writers).
 CSV_CHUNK_ROWS = 65_536
 
 #: File suffixes and the reader used for them.
 SUPPORTED_FORMATS = {".csv": "csv", ".txt": "csv", ".npz": "npz", ".mat": "mat"}
 
-#: Columns of the FRF table written by :func:`write_frf_csv`.
-FRF_COLUMNS = (
-    "frequency_hz",
-    "real",
-    "imag",
-    "magnitude_db",
-    "phase_deg",
-    "std",
-    "valid",
-)
+#: CSV column names (compared without case) read as time, with their unit in
+#: seconds: the step of such a column is the fast sample time.
+TIME_COLUMNS = {
+    "t": 1.0,
+    "time": 1.0,
+    "t_s": 1.0,
+    "time_s": 1.0,
+    "t_ms": 1e-3,
+    "time_ms": 1e-3,
+    "t_us": 1e-6,
+    "time_us": 1e-6,
+}
+
+#: Relative difference above which a sample time passed and the one stored in
+#: the file contradict each other (0.1 %: a time column written with a few
+#: digits still agrees, a factor 2 never does).
+SAMPLE_TIME_RTOL = 1e-3
+
+#: Largest deviation of one step of a time column from its mean step, relative
+#: to the mean step, for the column to count as uniformly sampled.
+_TIME_STEP_RTOL = 1e-2
+
+#: Names of the scalars that store the sample time and the downsampling factor
+#: in an .npz or .mat file.
+_SAMPLE_TIME_KEYS = ("sample_time",)
+_FACTOR_KEYS = ("downsampling_factor", "F")
+
+#: Cells pandas reads as missing: empty, and NaN spelled as numpy writes it.
+_NA_TEXT = ["", "nan", "NaN", "NAN"]
 
 _MAT_NUMERIC_CLASSES = {
     "double",
@@ -145,7 +158,7 @@ class Measurement:
     y_l : ndarray of shape (M,)
         Slow-rate output, ``N = F M``.
     downsampling_factor : int
-        ``F``.
+        ``F``, passed or read from the file.
     output_layout : str
         ``"slow"`` (a column of ``M`` values) or ``"fast"`` (values at rows
         ``m F`` of a fast-rate column).
@@ -153,6 +166,12 @@ class Measurement:
         SHA-256 of the file's bytes.
     checks : tuple of str
         The data checks performed, in words, for reports.
+    sample_time : float or None
+        Fast sample time in seconds, passed or read from the file; None when
+        neither gave one.
+    sample_time_source : str
+        Where ``sample_time`` came from: ``"passed"``, ``"file"`` (or
+        ``"passed, agrees with the file"``), or ``""`` when it is None.
     """
 
     path: Path
@@ -165,6 +184,8 @@ class Measurement:
     output_layout: str
     sha256: str
     checks: tuple[str, ...] = field(default_factory=tuple)
+    sample_time: float | None = None
+    sample_time_source: str = ""
 
     @property
     def n_samples(self) -> int:
@@ -177,12 +198,29 @@ class Measurement:
         return int(self.y_l.size)
 
 
+@dataclass
+class _Raw:
+    """What a format reader found, before the shared checks."""
+
+    u: np.ndarray
+    y: np.ndarray
+    where: object
+    checks: list
+    sample_time: float | None = None
+    sample_time_origin: str = ""
+    factor: int | None = None
+    factor_origin: str = ""
+    sha256: str = ""
+
+
 def read_measurement(
     path,
     *,
-    F: int,
+    F: int | None = None,
+    sample_time: float | None = None,
     input_column: str = "u",
     output_column: str = "y",
+    time_column: str | None = "auto",
     max_samples: int = DEFAULT_MAX_SAMPLES,
 ) -> Measurement:
     """Read and check a fast input and a slow output from a CSV, NPZ or MAT file.
@@ -191,13 +229,27 @@ def read_measurement(
     ----------
     path : str or Path
         ``.csv``/``.txt``, ``.npz`` or ``.mat`` file (see the module notes).
-    F : int
+    F : int, optional
         Downsampling factor: the output is sampled every ``F`` input samples.
+        Integral floats (``3.0``) are accepted. When omitted it is read from
+        the file (an ``.npz``/``.mat`` scalar ``downsampling_factor`` or
+        ``F``); when given and the file stores another, it is refused.
+    sample_time : float, optional
+        Fast sample time in seconds, checked against the file's (the scalar
+        ``sample_time`` of an ``.npz``/``.mat`` file, the step of a CSV time
+        column) to within :data:`SAMPLE_TIME_RTOL`. When omitted, the file's
+        value (if any) is returned in :attr:`Measurement.sample_time`.
     input_column : str, default="u"
         Column (CSV) or variable (NPZ, MAT) holding the fast input.
     output_column : str, default="y"
         Column or variable holding the slow output, either ``M = N/F`` values
         or a fast-rate column with values at rows ``m F`` only.
+    time_column : str or None, default="auto"
+        CSV only: the column holding the time of each row, in seconds (or in
+        ms, us when its name ends in ``_ms``, ``_us``). ``"auto"`` uses the
+        first column named like one of :data:`TIME_COLUMNS`, if any; None
+        ignores any time column. It must be uniformly spaced (to 1 % of its
+        step).
     max_samples : int, default=DEFAULT_MAX_SAMPLES
         Refuse files with more rows or array elements than this.
 
@@ -209,7 +261,9 @@ def read_measurement(
     ------
     DataFileError
         Missing or unreadable file, unknown format, missing column, empty or
-        NaN values, non-numeric cells, lengths that do not match ``F``.
+        NaN values, non-numeric cells, lengths that do not match ``F``, a
+        time column that is not uniform, an ``F`` or a sample time that
+        contradicts the file, no ``F`` passed or stored.
 
     Examples
     --------
@@ -217,10 +271,13 @@ def read_measurement(
     >>> from lrmfrf.io import read_measurement
     >>> data = read_measurement(
     ...     files("lrmfrf") / "data" / "wafer_stage_example.csv", F=3)
-    >>> data.u_h.shape, data.y_l.shape
-    ((1200,), (400,))
+    >>> data.u_h.shape, data.y_l.shape, data.sample_time
+    ((1200,), (400,), 0.0005)
     """
-    F = check_downsampling_factor(F)
+    if F is not None:
+        F = check_downsampling_factor(F)
+    if sample_time is not None:
+        sample_time = check_sample_time(sample_time)
     path = Path(path)
     if input_column == output_column:
         raise ValueError(
@@ -229,24 +286,19 @@ def read_measurement(
         )
     file_format = _check_readable(path)
     if file_format == "csv":
-        u_raw, y_raw, where, checks = _read_csv(
-            path, input_column, output_column, max_samples
-        )
+        raw = _read_csv(path, input_column, output_column, time_column, max_samples)
     elif file_format == "npz":
-        u_raw, y_raw, where, checks = _read_npz(
-            path, input_column, output_column, max_samples
-        )
+        raw = _read_npz(path, input_column, output_column, max_samples)
     else:
-        u_raw, y_raw, where, checks = _read_mat(
-            path, input_column, output_column, max_samples
-        )
-    u_h = _check_input(path, u_raw, input_column, where, checks)
-    y_l, layout = _slow_output(path, y_raw, u_h.size, F, output_column, where, checks)
-    checks.append(  # RMS through dot products: no N-sized temporaries
-        f"input RMS {np.sqrt(np.dot(u_h, u_h) / u_h.size):.4g}, output RMS "
-        f"{np.sqrt(np.dot(y_l, y_l) / y_l.size):.4g}"
-    )
-    digest = file_sha256(path)
+        raw = _read_mat(path, input_column, output_column, max_samples)
+    checks = raw.checks
+    F = _resolve_factor(path, F, raw, checks)
+    sample_time, source = _resolve_sample_time(path, sample_time, raw, checks)
+    u_h = _check_input(path, raw.u, input_column, raw.where, checks)
+    y_l, layout = _slow_output(path, raw.y, u_h.size, F, output_column, raw.where,
+                               checks)
+    checks.append(f"input RMS {_rms(u_h):.4g}, output RMS {_rms(y_l):.4g}")
+    digest = raw.sha256 or file_sha256(path)
     checks.append(f"file SHA-256 {digest}")
     logger.debug("read %s: N=%d, M=%d, layout=%s", path, u_h.size, y_l.size, layout)
     return Measurement(
@@ -260,7 +312,21 @@ def read_measurement(
         output_layout=layout,
         sha256=digest,
         checks=tuple(checks),
+        sample_time=sample_time,
+        sample_time_source=source,
     )
+
+
+def _rms(x: np.ndarray) -> float:
+    """Root mean square through a dot product (no N-sized temporary), scaled
+    first only when the squares overflow (|x| beyond about 1e154)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        square = np.dot(x, x)
+    if np.isfinite(square):
+        return float(np.sqrt(square / x.size))
+    scale = max(float(np.max(x)), -float(np.min(x)))
+    scaled = x / scale
+    return scale * float(np.sqrt(np.dot(scaled, scaled) / x.size))
 
 
 def file_sha256(path, *, block_size: int = 2**20) -> str:
@@ -273,211 +339,76 @@ def file_sha256(path, *, block_size: int = 2**20) -> str:
 
 
 # --------------------------------------------------------------------------
-# Writing
+# Private helpers: F and the sample time, passed or stored
 # --------------------------------------------------------------------------
 
 
-def check_output_path(path, *, overwrite: bool = False, protect: Iterable = ()) -> Path:
-    """Check that ``path`` may be written; return it as a ``Path``.
-
-    Parameters
-    ----------
-    path : str or Path
-        Target file.
-    overwrite : bool, default=False
-        Allow replacing an existing file.
-    protect : iterable of str or Path
-        Files that must never be replaced (the inputs), even with
-        ``overwrite=True``.
-
-    Raises
-    ------
-    ValueError
-        ``path`` is one of the protected files, or an existing folder.
-    FileExistsError
-        ``path`` exists and ``overwrite`` is False.
-    """
-    path = Path(path)
-    if not path.exists():
-        return path
-    for other in protect:
-        with suppress(OSError):
-            if os.path.samefile(path, other):
-                raise ValueError(
-                    f"{path}: the output would replace the input file {other}. "
-                    "Choose another output folder (--out); inputs are never "
-                    "overwritten."
-                )
-    if path.is_dir():
-        raise ValueError(
-            f"{path}: an output file name is taken by a folder. Remove the folder "
-            "or choose another output folder (--out)."
+def _resolve_factor(path, F, raw: _Raw, checks: list) -> int:
+    if raw.factor is None:
+        if F is None:
+            raise DataFileError(
+                path,
+                "no downsampling factor F was passed and the file stores none "
+                f"(no scalar {' or '.join(map(repr, _FACTOR_KEYS))})",
+                "Pass F (--F), the ratio of the slow to the fast sample time",
+            )
+        return F
+    if F is None:
+        checks.append(f"downsampling factor F={raw.factor} read from "
+                      f"{raw.factor_origin}")
+        return raw.factor
+    if F != raw.factor:
+        raise DataFileError(
+            path,
+            f"F={F} was passed but {raw.factor_origin} says F={raw.factor}",
+            "Pass the file's F (or omit --F to use it), or correct the file",
         )
-    if not overwrite:
-        raise FileExistsError(
-            f"{path}: the output file exists already. Pass --force "
-            "(overwrite=True) to replace it, or choose another output folder "
-            "(--out)."
+    checks.append(f"downsampling factor F={F} agrees with {raw.factor_origin}")
+    return F
+
+
+def _resolve_sample_time(path, sample_time, raw: _Raw, checks: list):
+    stored = raw.sample_time
+    if stored is None:
+        return sample_time, ("passed" if sample_time is not None else "")
+    if sample_time is None:
+        checks.append(f"sample time {stored:.6g} s read from {raw.sample_time_origin}")
+        return stored, "file"
+    if not math.isclose(sample_time, stored, rel_tol=SAMPLE_TIME_RTOL):
+        raise DataFileError(
+            path,
+            f"the sample time {sample_time:g} s was passed but "
+            f"{raw.sample_time_origin} says {stored:.6g} s (ratio "
+            f"{sample_time / stored:.4g}); every frequency would be off by that "
+            "factor",
+            "Pass the file's sample time (or omit --sample-time to use it), or "
+            "correct the file",
         )
-    return path
+    checks.append(f"sample time {sample_time:g} s agrees with "
+                  f"{raw.sample_time_origin} ({stored:.6g} s)")
+    return sample_time, "passed, agrees with the file"
 
 
-@contextmanager
-def atomic_open(
-    path, *, overwrite: bool = False, protect: Iterable = ()
-) -> Iterator[BinaryIO]:
-    """Open ``path`` for binary writing through a temporary file, atomically.
-
-    The data go to a temporary file in the same folder, which is flushed,
-    synced and moved onto ``path`` with ``os.replace`` when the ``with`` block
-    ends without error; on error it is deleted and ``path`` is untouched.
-
-    Parameters
-    ----------
-    path : str or Path
-        Target file; its folder must exist.
-    overwrite : bool, default=False
-        Allow replacing an existing file (checked before and after writing).
-    protect : iterable of str or Path
-        Files never to replace (see :func:`check_output_path`).
-
-    Yields
-    ------
-    file object
-        Binary file open for writing.
-
-    Examples
-    --------
-    >>> import tempfile, pathlib
-    >>> from lrmfrf.io import atomic_open
-    >>> target = pathlib.Path(tempfile.mkdtemp()) / "hello.txt"
-    >>> with atomic_open(target) as fh:
-    ...     _ = fh.write(b"hello")
-    >>> target.read_bytes()
-    b'hello'
-    """
-    protect = tuple(protect)
-    path = check_output_path(path, overwrite=overwrite, protect=protect)
-    fd, tmp_name = tempfile.mkstemp(
-        dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"
-    )
+def _stored_factor(path, value, origin: str) -> int:
     try:
-        with os.fdopen(fd, "wb") as fh:
-            yield fh
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp_name, 0o666 & ~_umask())
-        check_output_path(path, overwrite=overwrite, protect=protect)
-        os.replace(tmp_name, path)
-    except BaseException:
-        with suppress(OSError):
-            os.unlink(tmp_name)
-        raise
+        return check_downsampling_factor(value)
+    except (TypeError, ValueError):
+        raise DataFileError(
+            path,
+            f"{origin} is {value!r}, not a positive integer",
+            "Store the downsampling factor as a positive integer, or remove it",
+        ) from None
 
 
-def frf_table(estimator) -> dict[str, np.ndarray]:
-    """The columns of the FRF table of a fitted estimator.
-
-    Parameters
-    ----------
-    estimator : fitted estimator
-        With ``frequencies_`` (Hz), ``frf_``, ``frf_std_`` and ``valid_``.
-
-    Returns
-    -------
-    dict of str to ndarray of shape (n_freq,)
-        Keys :data:`FRF_COLUMNS`: frequency in Hz, real and imaginary parts,
-        magnitude in dB, phase in degrees (wrapped to (-180, 180]), standard
-        deviation of the complex estimate, and validity (bool).
-    """
-    frf = np.asarray(estimator.frf_, dtype=complex)
-    magnitude = np.abs(frf)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        magnitude_db = 20.0 * np.log10(magnitude)
-    return {
-        "frequency_hz": np.asarray(estimator.frequencies_, dtype=float),
-        "real": frf.real.copy(),
-        "imag": frf.imag.copy(),
-        "magnitude_db": magnitude_db,
-        "phase_deg": np.angle(frf, deg=True),
-        "std": np.asarray(estimator.frf_std_, dtype=float),
-        "valid": np.asarray(estimator.valid_, dtype=bool),
-    }
-
-
-def write_frf_csv(
-    path, table: dict, *, overwrite: bool = False, protect: Iterable = ()
-) -> Path:
-    """Write an FRF table (see :func:`frf_table`) as CSV, atomically.
-
-    One header row with :data:`FRF_COLUMNS`, then one row per frequency;
-    numbers with 10 significant digits, ``valid`` as 0/1, NaN as ``nan``.
-
-    Returns
-    -------
-    Path
-    """
-    columns = [np.asarray(table[name]) for name in FRF_COLUMNS]
-    n_rows = columns[0].size
-    with atomic_open(path, overwrite=overwrite, protect=protect) as fh:
-        text = io.TextIOWrapper(fh, encoding="utf-8", newline="")
-        text.write(",".join(FRF_COLUMNS) + "\n")
-        for start in range(0, n_rows, CSV_CHUNK_ROWS):
-            stop = min(start + CSV_CHUNK_ROWS, n_rows)
-            block = np.column_stack(
-                [col[start:stop].astype(float) for col in columns]
-            )
-            np.savetxt(
-                text, block, delimiter=",", fmt=["%.10g"] * 6 + ["%d"]
-            )
-        text.flush()
-        text.detach()
-    return Path(path)
-
-
-def write_frf_npz(
-    path,
-    table: dict,
-    *,
-    metadata: dict | None = None,
-    overwrite: bool = False,
-    protect: Iterable = (),
-) -> Path:
-    """Write an FRF table as ``.npz`` (no pickles), atomically.
-
-    Holds the :data:`FRF_COLUMNS` arrays, the complex ``frf``, and each
-    ``metadata`` item as a 0-d array (numbers or strings only), so it loads
-    with ``np.load(path, allow_pickle=False)``.
-
-    Returns
-    -------
-    Path
-    """
-    arrays = {name: np.asarray(table[name]) for name in FRF_COLUMNS}
-    arrays["frf"] = arrays["real"] + 1j * arrays["imag"]
-    for key, value in (metadata or {}).items():
-        if key in arrays:
-            raise ValueError(f"metadata key {key!r} clashes with an FRF column.")
-        arrays[key] = np.asarray(value if value is not None else "")
-        if arrays[key].dtype == object:
-            raise TypeError(
-                f"metadata[{key!r}] must be a number or a string. Got "
-                f"{type(value).__name__}."
-            )
-    with atomic_open(path, overwrite=overwrite, protect=protect) as fh:
-        np.savez(fh, **arrays)
-    return Path(path)
-
-
-# --------------------------------------------------------------------------
-# Private helpers: checks shared by the readers
-# --------------------------------------------------------------------------
-
-
-def _umask() -> int:
-    current = os.umask(0)
-    os.umask(current)
-    return current
+def _stored_sample_time(path, value, origin: str) -> float:
+    try:
+        return check_sample_time(value)
+    except (TypeError, ValueError):
+        raise DataFileError(
+            path,
+            f"{origin} is {value!r}, not a positive number of seconds",
+            "Store the fast sample time in seconds, or remove it",
+        ) from None
 
 
 def _check_readable(path: Path) -> str:
@@ -535,8 +466,8 @@ def _slow_output(
     path, y_raw: np.ndarray, n_fast: int, F: int, name: str, where, checks: list
 ) -> tuple[np.ndarray, str]:
     """Extract ``y_l`` (M,) from a slow column or a fast column with gaps."""
-    missing = np.isnan(y_raw)
-    fast_layout = F > 1 and y_raw.size == n_fast and n_fast > 1 and missing[1]
+    fast_layout = (F > 1 and y_raw.size == n_fast and n_fast > 1
+                   and np.isnan(y_raw[1]))
     if fast_layout:
         if n_fast % F:
             raise DataFileError(
@@ -544,11 +475,13 @@ def _slow_output(
                 f"the input has N={n_fast} samples, not a multiple of F={F}",
                 f"Check --F, or trim the record to {n_fast - n_fast % F} samples",
             )
-        on_grid = np.zeros(n_fast, dtype=bool)
-        on_grid[::F] = True
-        off_values = ~missing & ~on_grid
+        # Rows between the slow samples, one row of the view per slow sample:
+        # no N-sized temporaries.
+        off_grid = y_raw.reshape(-1, F)[:, 1:]
+        off_values = ~np.isnan(off_grid)
         if off_values.any():
-            first = int(np.flatnonzero(off_values)[0])
+            row, column = np.argwhere(off_values)[0]
+            first = int(row) * F + 1 + int(column)
             raise DataFileError(
                 path,
                 f"output {name!r} is stored at the fast rate but has values "
@@ -575,7 +508,7 @@ def _slow_output(
         )
         checks.append(f"lengths: N = F*M = {F}*{y_l.size} = {n_fast}")
         return y_l.copy(), "fast"
-    present = np.flatnonzero(~missing)
+    present = np.flatnonzero(~np.isnan(y_raw))
     n_used = int(present[-1]) + 1 if present.size else 0
     y_l = y_raw[:n_used]
     padding = y_raw.size - n_used
@@ -620,48 +553,58 @@ def _slow_output(
 # --------------------------------------------------------------------------
 
 
-def _read_csv(path: Path, input_column: str, output_column: str, max_samples: int):
-    checks: list[str] = []
+def _read_csv(path: Path, input_column: str, output_column: str, time_column,
+              max_samples: int) -> _Raw:
     try:
         with open(path, encoding="utf-8-sig", newline="") as fh:
             header, delimiter, header_line = _csv_header(path, fh)
-            indices = [
-                _column_index(path, header, name, option)
-                for name, option in (
-                    (input_column, "--input-column"),
-                    (output_column, "--output-column"),
-                )
-            ]
-            reader = csv.reader(fh, delimiter=delimiter)
-            columns = _csv_columns(
-                path, reader, indices, header, header_line, max_samples,
-                capacity=_count_lines(path),
-            )
     except UnicodeDecodeError as exc:
-        raise DataFileError(
-            path,
-            f"is not a UTF-8 text file (undecodable byte at position {exc.start})",
-            "Export the data as a UTF-8 CSV, or save them as .npz or .mat",
-        ) from exc
-    except csv.Error as exc:
-        raise DataFileError(
-            path, f"is not a valid CSV file ({exc})", "Check the quoting in the file"
-        ) from exc
-    u_raw, y_raw = columns
-    shown = ", ".join(repr(h) for h in header)
-    checks.append(
-        f"format: CSV, delimiter {delimiter!r}, header line {header_line} with "
-        f"columns {shown}"
+        raise _not_utf8(path, exc) from exc
+    indices = [
+        _column_index(path, header, name, option)
+        for name, option in (
+            (input_column, "--input-column"),
+            (output_column, "--output-column"),
+        )
+    ]
+    time_index, time_unit = _time_column_index(path, header, time_column, indices)
+    if time_index is not None:
+        indices.append(time_index)
+    n_lines, digest = _scan(path)
+    columns = _csv_columns(
+        path, header, delimiter, header_line, indices, max_samples,
+        capacity=n_lines,
     )
-    checks.append(f"read {u_raw.size} data rows, all cells numeric or empty")
+    shown = ", ".join(repr(h) for h in header)
+    checks = [
+        f"format: CSV, delimiter {delimiter!r}, header line {header_line} with "
+        f"columns {shown}",
+        f"read {columns[0].size} data rows, all cells numeric or empty",
+    ]
 
     def where(index: int) -> str:
         return f"line {header_line + 1 + index}"
 
-    return u_raw, y_raw, where, checks
+    raw = _Raw(columns[0], columns[1], where, checks, sha256=digest)
+    if time_index is not None:
+        name = header[time_index]
+        raw.sample_time = _time_step(path, columns[2] * time_unit, name, where)
+        raw.sample_time_origin = f"its time column {name!r}"
+    return raw
+
+
+def _not_utf8(path, exc: UnicodeDecodeError) -> DataFileError:
+    byte = exc.object[exc.start:exc.start + 1] if exc.object else b""
+    return DataFileError(
+        path,
+        f"is not a UTF-8 text file (undecodable byte {byte!r})",
+        "Export the data as a UTF-8 CSV, or save them as .npz or .mat",
+    )
 
 
 def _csv_header(path: Path, fh) -> tuple[list[str], str, int]:
+    import csv
+
     line_number = 0
     for line in iter(fh.readline, ""):
         line_number += 1
@@ -701,58 +644,179 @@ def _column_index(path: Path, header: Sequence[str], name: str, option: str) -> 
     return hits[0]
 
 
+def _time_column_index(path, header, time_column, taken):
+    """Index and unit (s) of the time column; ``(None, None)`` when none."""
+    if time_column is None:
+        return None, None
+    if time_column == "auto":
+        hits = [i for i, cell in enumerate(header)
+                if cell.lower() in TIME_COLUMNS and i not in taken]
+        if not hits:
+            return None, None
+        index = hits[0]
+    else:
+        index = _column_index(path, header, time_column, "--time-column")
+        if index in taken:
+            raise DataFileError(
+                path,
+                f"the time column {time_column!r} is also the input or the output",
+                "Name a separate time column with --time-column, or none",
+            )
+    return index, TIME_COLUMNS.get(header[index].lower(), 1.0)
+
+
+def _time_step(path, time: np.ndarray, name: str, where) -> float:
+    """The uniform step of a time column, in seconds."""
+    bad = ~np.isfinite(time)
+    if bad.any():
+        first = int(np.flatnonzero(bad)[0])
+        raise DataFileError(
+            path,
+            f"time column {name!r} has {int(bad.sum())} empty, NaN or inf "
+            f"value(s), the first at {where(first)}",
+            "Fill in the time column, or ignore it with --time-column none "
+            "(time_column=None)",
+        )
+    if time.size < 2:
+        raise DataFileError(
+            path, f"time column {name!r} has fewer than 2 values",
+            "Write a record of many samples",
+        )
+    step = (time[-1] - time[0]) / (time.size - 1)
+    steps = np.diff(time)
+    worst = float(np.max(np.abs(steps - step))) if step > 0 else math.inf
+    if not worst <= _TIME_STEP_RTOL * step:
+        first = int(np.argmax(np.abs(steps - step))) if step > 0 else 0
+        raise DataFileError(
+            path,
+            f"time column {name!r} is not uniformly increasing (mean step "
+            f"{step:.6g} s, the step from {where(first)} to the next row is "
+            f"{float(steps[first]):.6g} s)",
+            "The records must be sampled uniformly at the fast rate; write the "
+            "time with more digits, or ignore it with --time-column none "
+            "(time_column=None)",
+        )
+    return float(step)
+
+
 def _count_lines(path: Path, block_size: int = 2**20) -> int:
     """Number of line breaks + 1: an upper bound on the rows (bounded memory)."""
+    return _scan(path, block_size)[0]
+
+
+def _scan(path: Path, block_size: int = 2**20) -> tuple[int, str]:
+    """Line breaks + 1 and the SHA-256 of a file, in one pass over its bytes."""
     count = 1
+    digest = hashlib.sha256()
     with open(path, "rb") as fh:
         for block in iter(lambda: fh.read(block_size), b""):
             count += block.count(b"\n")
-    return count
+            digest.update(block)
+    return count, digest.hexdigest()
 
 
-def _csv_columns(path, reader, indices, header, header_line, max_samples, *,
-                 capacity: int):
-    """Parse the chosen columns, chunk by chunk, into preallocated arrays."""
+def _csv_blocks(path, header, delimiter, header_line, indices):
+    """pandas' C parser over the data rows, :data:`CSV_CHUNK_ROWS` at a time."""
+    import pandas as pd
+
+    return pd.read_csv(
+        path,
+        sep=delimiter,
+        header=None,
+        names=list(range(len(header))),
+        usecols=sorted(indices),  # other columns are not converted; extra
+        index_col=False,  # cells in a row are ignored, as before
+        skiprows=header_line,
+        skip_blank_lines=False,  # blank rows keep their line numbers
+        skipinitialspace=True,
+        keep_default_na=False,
+        na_values=_NA_TEXT,
+        encoding="utf-8-sig",
+        engine="c",
+        low_memory=False,
+        chunksize=CSV_CHUNK_ROWS,
+    )
+
+
+def _csv_columns(path, header, delimiter, header_line, indices, max_samples, *,
+                 capacity: int) -> list[np.ndarray]:
+    """Parse the chosen columns, block by block, into preallocated arrays."""
+    import pandas as pd
+
     size = max(min(capacity, max_samples + 1), 1)
     columns = [np.empty(size) for _ in indices]
     n_rows = 0
-    while True:
-        rows = list(itertools.islice(reader, CSV_CHUNK_ROWS))
-        if not rows:
-            break
-        if n_rows + len(rows) > max_samples:
-            raise DataFileError(
-                path,
-                f"has more than {max_samples} data rows, the reader's limit "
-                "(about 16 bytes of memory per row)",
-                "Raise the limit with --max-samples (max_samples=) if memory "
-                "allows, or split the record",
-            )
-        if n_rows + len(rows) > size:  # the file grew while being read
-            size = min(2 * (n_rows + len(rows)), max_samples + 1)
-            columns = [np.concatenate([c[:n_rows], np.empty(size - n_rows)])
-                       for c in columns]
-        for column, index in zip(columns, indices, strict=True):
-            cells = [row[index] if len(row) > index else "" for row in rows]
-            first_line = header_line + 1 + n_rows
-            column[n_rows:n_rows + len(rows)] = _parse_cells(
-                path, cells, header[index], first_line
-            )
-        n_rows += len(rows)
+    try:
+        with _csv_blocks(path, header, delimiter, header_line, indices) as blocks:
+            for block in blocks:
+                n_block = len(block)
+                if n_rows + n_block > max_samples:
+                    raise DataFileError(
+                        path,
+                        f"has more than {max_samples} data rows, the reader's "
+                        "limit (about 16 bytes of memory per row)",
+                        "Raise the limit with --max-samples (max_samples=) if "
+                        "memory allows, or split the record",
+                    )
+                if n_rows + n_block > size:  # the file grew while being read
+                    size = min(2 * (n_rows + n_block), max_samples + 1)
+                    columns = [np.concatenate([c[:n_rows], np.empty(size - n_rows)])
+                               for c in columns]
+                for column, index in zip(columns, indices, strict=True):
+                    column[n_rows:n_rows + n_block] = _block_values(
+                        path, block[index], header[index], header_line + 1 + n_rows
+                    )
+                n_rows += n_block
+    except UnicodeDecodeError as exc:
+        raise _not_utf8(path, exc) from exc
+    except pd.errors.EmptyDataError:
+        n_rows = 0
+    except pd.errors.ParserError as exc:
+        raise DataFileError(
+            path,
+            f"is not a valid CSV file ({' '.join(str(exc).split())})",
+            "Check the quoting in the file",
+        ) from exc
     if n_rows == 0:
         raise DataFileError(
             path, "has a header but no data rows", "Write the data below the header"
         )
-    columns = [c[:n_rows] for c in columns]
-    # Blank lines at the end of the file are not data.
-    blank = np.isnan(columns[0]) & np.isnan(columns[1])
-    keep = blank.size - int(np.argmax(~blank[::-1])) if (~blank).any() else 0
+    keep = _rows_before_blank_tail(columns[0][:n_rows], columns[1][:n_rows])
     return [col[:keep] for col in columns]
+
+
+def _rows_before_blank_tail(u: np.ndarray, y: np.ndarray, block: int = 4096) -> int:
+    """Rows up to the last one with an input or output value: blank lines at the
+    end of a file are not data (scanned from the end, block by block)."""
+    stop = u.size
+    while stop > 0:
+        start = max(stop - block, 0)
+        filled = ~(np.isnan(u[start:stop]) & np.isnan(y[start:stop]))
+        if filled.any():
+            return start + int(np.flatnonzero(filled)[-1]) + 1
+        stop = start
+    return 0
+
+
+def _block_values(path, cells, name: str, first_line: int) -> np.ndarray:
+    """One column of a block as float64; non-numbers are parsed cell by cell."""
+    if cells.dtype.kind in "fiu":
+        return cells.to_numpy(dtype=np.float64)
+    # A cell pandas did not read as a number (text, surrounding blanks, inf,
+    # integers beyond 64 bits): parse each as numpy does, to name the bad one.
+    text = ["" if _is_missing(cell) else str(cell) for cell in cells.to_numpy(
+        dtype=object)]
+    return _parse_cells(path, text, name, first_line)
+
+
+def _is_missing(cell) -> bool:
+    return cell is None or (isinstance(cell, float) and math.isnan(cell))
 
 
 def _parse_cells(path, cells: list[str], name: str, first_line: int) -> np.ndarray:
     text = np.char.strip(np.array(cells, dtype=str))
-    text[text == ""] = "nan"
+    # "nan" needs three characters: a column of one-character cells is '<U1'.
+    text = np.where(text == "", np.array("nan", dtype="<U3"), text)
     try:
         return text.astype(np.float64)
     except ValueError:
@@ -778,6 +842,7 @@ def _is_number(text: str, *, strict: bool = False) -> bool:
     except ValueError:
         return False
     return True
+
 
 
 # --------------------------------------------------------------------------
@@ -855,9 +920,16 @@ def _read_npz(path: Path, input_column: str, output_column: str, max_samples: in
                 _check_array_meta(
                     path, name, shape, str(dtype), numeric, max_samples, "array"
                 )
+            scalars = {
+                key: _npz_scalar(archive, f"{key}.npy")
+                for key in (*_SAMPLE_TIME_KEYS, *_FACTOR_KEYS)
+                if f"{key}.npy" in members
+            }
         with np.load(path, allow_pickle=False) as data:
             u_raw = _real_vector(path, data[input_column], input_column, "array")
             y_raw = _real_vector(path, data[output_column], output_column, "array")
+            scalars = {key: data[key] if ok else None
+                       for key, ok in scalars.items()}
     except DataFileError:
         raise
     except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
@@ -870,7 +942,53 @@ def _read_npz(path: Path, input_column: str, output_column: str, max_samples: in
         f"format: NumPy .npz loaded with allow_pickle=False, arrays "
         f"{input_column!r} and {output_column!r} numeric, real, 1-D"
     ]
-    return u_raw, y_raw, _index_where, checks
+    raw = _Raw(u_raw, y_raw, _index_where, checks)
+    _stored_scalars(path, raw, scalars, "array")
+    return raw
+
+
+def _npz_scalar(archive, member_name: str) -> bool:
+    """Is the archive member a numeric array of one element (checked header)?"""
+    with archive.open(member_name) as member:
+        shape, dtype = _npy_header(member)
+    numeric = (not dtype.hasobject) and np.issubdtype(dtype, np.number)
+    return numeric and int(np.prod(shape)) == 1
+
+
+def _stored_scalars(path, raw: _Raw, scalars: dict, kind: str) -> None:
+    """Fill ``raw.sample_time`` and ``raw.factor`` from the file's scalars.
+
+    ``scalars`` maps a key present in the file to its value (None when the
+    entry is not a numeric scalar, which is refused).
+    """
+    for keys, attribute in ((_SAMPLE_TIME_KEYS, "sample_time"),
+                            (_FACTOR_KEYS, "factor")):
+        found = [key for key in keys if key in scalars]
+        if not found:
+            continue
+        values = {}
+        for key in found:
+            origin = f"its {kind} {key!r}"
+            value = scalars[key]
+            if value is None or np.iscomplexobj(value):
+                raise DataFileError(
+                    path,
+                    f"{origin} is not a real number",
+                    f"Store {key!r} as one real number, or remove it",
+                )
+            value = np.asarray(value).reshape(-1)[0].item()
+            if attribute == "factor":
+                values[key] = _stored_factor(path, value, origin)
+            else:
+                values[key] = _stored_sample_time(path, value, origin)
+        if len(set(values.values())) > 1:
+            shown = ", ".join(f"{k}={v!r}" for k, v in values.items())
+            raise DataFileError(
+                path, f"the file stores contradicting values {shown}",
+                "Keep one of them",
+            )
+        setattr(raw, attribute, values[found[0]])
+        setattr(raw, f"{attribute}_origin", f"its {kind} {found[0]!r}")
 
 
 def _npy_header(member) -> tuple[tuple[int, ...], np.dtype]:
@@ -915,9 +1033,11 @@ def _read_mat(path: Path, input_column: str, output_column: str, max_samples: in
         _check_array_meta(
             path, name, shape, cls, cls in _MAT_NUMERIC_CLASSES, max_samples, "variable"
         )
+    stored = [key for key in (*_SAMPLE_TIME_KEYS, *_FACTOR_KEYS) if key in contents]
     try:
         data = scipy.io.loadmat(
-            path, variable_names=[input_column, output_column], squeeze_me=False
+            path, variable_names=[input_column, output_column, *stored],
+            squeeze_me=False,
         )
     except Exception as exc:  # pragma: no cover - whosmat read it already
         raise DataFileError(
@@ -931,4 +1051,11 @@ def _read_mat(path: Path, input_column: str, output_column: str, max_samples: in
         f"format: MATLAB .mat, variables {input_column!r} and {output_column!r} "
         "checked (numeric class, real, vector) before use"
     ]
-    return u_raw, y_raw, _index_where, checks
+    raw = _Raw(u_raw, y_raw, _index_where, checks)
+    scalars = {
+        key: data[key] if contents[key][1] in _MAT_NUMERIC_CLASSES
+        and int(np.prod(contents[key][0])) == 1 else None
+        for key in stored
+    }
+    _stored_scalars(path, raw, scalars, "variable")
+    return raw
