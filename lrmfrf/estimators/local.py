@@ -22,10 +22,16 @@ from .._validation import (
     check_sample_time,
 )
 from ..exceptions import IdentifiabilityWarning
-from ..local_models import dft, fit_local_models, one_sided_fast_grid
+from ..local_models import (
+    dft,
+    fit_local_models,
+    one_sided_fast_grid,
+    rescale_local_fit,
+    scale_by_power_of_two,
+)
 from ..refinement import _emit_warnings, _refine
 from ..windows import LocalModelLayout
-from ._base import _BaseFRFEstimator
+from ._base import _BaseFRFEstimator, _normalise_in_place
 
 __all__ = ["LRMBeyondNyquist", "LPMBeyondNyquist"]
 
@@ -46,8 +52,12 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         """The four local-model settings from the checked parameters."""
         raise NotImplementedError
 
-    def _refine(self, U, Y, layout, local_fit, params: dict):
-        """Hook for iterative refinement; the closed form by default."""
+    def _refine(self, U, Y, layout, local_fit, params: dict, y_exponent: int):
+        """Hook for iterative refinement; the closed form by default.
+
+        ``U``, ``Y`` and ``local_fit`` are normalised (see ``fit``); costs
+        stored on the estimator are scaled back by ``2**(2*y_exponent)``.
+        """
         return local_fit
 
     def fit(self, u_h, y_l, F, *, sample_time: float = 1.0):
@@ -94,14 +104,23 @@ class _LocalModelEstimator(_BaseFRFEstimator):
             parameter_names=self._degree_names,
         )
         layout = LocalModelLayout(F=F, n_experiments=P, **degrees)
+        # The FRF is a ratio: fit on records normalised by powers of two
+        # (exact; none for ordinary data) and undo it on the results.
+        u_exponent = _normalise_in_place(u)
+        y_exponent = _normalise_in_place(y)
         U = dft(u)
         Y = dft(y)
+        del u, y
         local_fit = fit_local_models(U, Y, layout)
-        local_fit = self._refine(U, Y, layout, local_fit, params)
-        self._set_fitted(local_fit, layout, N, M, F, P, sample_time)
+        local_fit = self._refine(U, Y, layout, local_fit, params, y_exponent)
+        self._set_fitted(
+            local_fit, layout, N, M, F, P, sample_time, u_exponent, y_exponent
+        )
         return self
 
-    def _set_fitted(self, local_fit, layout, N, M, F, P, sample_time) -> None:
+    def _set_fitted(
+        self, local_fit, layout, N, M, F, P, sample_time, u_exponent, y_exponent
+    ) -> None:
         valid = one_sided_fast_grid(
             np.repeat(local_fit.well_posed[:, None], F, axis=1), N, F, conj=False
         )
@@ -134,10 +153,13 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         self.dof_ = layout.dof
         self.layout_ = layout
         self.frequencies_ = np.arange(N // 2 + 1) / (N * sample_time)
-        self.frf_ = one_sided_fast_grid(local_fit.system, N, F, conj=True)
-        self.frf_std_ = np.sqrt(
-            one_sided_fast_grid(local_fit.system_var, N, F, conj=False)
-        )
+        system_exponent = y_exponent - u_exponent
+        frf = one_sided_fast_grid(local_fit.system, N, F, conj=True)
+        self.frf_ = scale_by_power_of_two(frf, system_exponent)
+        # std from the normalised variance: its square may leave the float range
+        std = np.sqrt(one_sided_fast_grid(local_fit.system_var, N, F, conj=False))
+        self.frf_std_ = scale_by_power_of_two(std, system_exponent)
+        local_fit = rescale_local_fit(local_fit, u_exponent, y_exponent)
         self.valid_ = valid
         self.slow_frequencies_ = local_fit.slow_bins / (N * sample_time)
         self.noise_variance_ = local_fit.noise_var
@@ -327,7 +349,7 @@ class LRMBeyondNyquist(_LocalModelEstimator):
             "den_degree": params["den_degree"],
         }
 
-    def _refine(self, U, Y, layout, local_fit, params: dict):
+    def _refine(self, U, Y, layout, local_fit, params: dict, y_exponent: int):
         sk, lm = params["sk_iterations"], params["lm_iterations"]
         self.n_sk_iter_ = self.n_lm_iter_ = self.n_guarded_ = 0
         self.cost_history_ = self.sk_cost_history_ = None
@@ -339,8 +361,12 @@ class LRMBeyondNyquist(_LocalModelEstimator):
             keep_best=True, chunk_size=None, verbose=params["verbose"],
         )
         _emit_warnings(result, stacklevel=3)  # -> the caller of fit
-        self.cost_history_ = result.cost_history
-        self.sk_cost_history_ = result.sk_cost_history
+        self.cost_history_ = scale_by_power_of_two(
+            result.cost_history, 2 * y_exponent
+        )
+        self.sk_cost_history_ = scale_by_power_of_two(
+            result.sk_cost_history, 2 * y_exponent
+        )
         self.n_sk_iter_ = result.sk_iterations
         self.n_lm_iter_ = result.lm_iterations
         self.n_guarded_ = result.n_guarded
