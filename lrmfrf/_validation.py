@@ -72,13 +72,27 @@ def check_bool(value, name: str) -> bool:
 def check_downsampling_factor(F) -> int:
     """Return the downsampling factor as a positive int.
 
-    ``3`` and ``3.0`` are accepted; ``2.5``, ``0``, ``True`` and strings are not.
+    The one rule for the API and the command line: a number with an integral
+    value is accepted (``3``, ``3.0``, ``np.int64(3)``, ``np.float64(3.0)``
+    all give ``3``); a non-integral number (``3.5``, NaN, inf), a value below
+    1, a bool (``True``) and text (``"3"``) are refused with a message saying
+    what to pass.
+
+    Parameters
+    ----------
+    F : int or float
+        The ratio of the slow to the fast sample time.
+
+    Returns
+    -------
+    int
     """
-    if isinstance(F, bool) or not isinstance(F, numbers.Real):
+    if isinstance(F, (bool, np.bool_)) or not isinstance(F, numbers.Real):
+        kind = "text" if isinstance(F, (str, bytes)) else type(F).__name__
         raise TypeError(
-            f"The downsampling factor F must be a positive integer. Got {F!r} of "
-            f"type {type(F).__name__} instead. Pass the ratio of the slow to the "
-            "fast sample time, e.g. F=3."
+            f"The downsampling factor F must be a positive integer. Got {F!r} "
+            f"({kind}) instead. Pass a number, the ratio of the slow to the fast "
+            "sample time, e.g. F=3."
         )
     if not float(F).is_integer() or F < 1:
         raise ValueError(

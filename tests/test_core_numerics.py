@@ -80,7 +80,7 @@ def test_F1_is_textbook_single_rate_model(den_degree):
         est = LRMBeyondNyquist(half_window=n, num_degree=Rn, transient_degree=Rt,
                                den_degree=den_degree)
     else:
-        est = LPMBeyondNyquist(half_window=n, degree=Rn)
+        est = LPMBeyondNyquist(half_window=n, num_degree=Rn)
     est.fit(u, y, F=1)
     U, Y = np.fft.fft(u), np.fft.fft(y)
     bins = np.arange(0, 301, 7)
@@ -136,7 +136,7 @@ def test_lpm_is_lrm_with_zero_denominator():
     rng = np.random.default_rng(5)
     u = multisine(1200, rng=rng)
     y = simulate_resonant(u, 3, 1e-2, rng)
-    lpm = LPMBeyondNyquist(half_window=15, degree=3).fit(u, y, 3)
+    lpm = LPMBeyondNyquist(half_window=15, num_degree=3).fit(u, y, 3)
     lrm = LRMBeyondNyquist(half_window=15, num_degree=3, transient_degree=3,
                            den_degree=0).fit(u, y, 3)
     np.testing.assert_array_equal(lpm.frf_, lrm.frf_)

@@ -82,11 +82,27 @@ def test_non_integer_downsampling_factor_rejected(F):
         LRMBeyondNyquist().fit(u, u[::3], F)
 
 
-def test_float_integer_F_accepted(data):
+@pytest.mark.parametrize("F", [3.0, np.float64(3.0), np.float32(3.0), np.int64(3)])
+def test_float_integer_F_accepted(F, data):
+    """One rule with the CLI: an integral value is F = 3 (an int)."""
     u, y = data
-    a = LRMBeyondNyquist().fit(u, y, 3.0)
+    a = LRMBeyondNyquist().fit(u, y, F)
     b = LRMBeyondNyquist().fit(u, y, 3)
     np.testing.assert_array_equal(a.frf_, b.frf_)
+    assert type(a.downsampling_factor_) is int and a.downsampling_factor_ == 3
+
+
+@pytest.mark.parametrize("F, exc, match", [
+    (3.5, ValueError, "Got 3.5 instead"),
+    ("3", TypeError, r"Got '3' \(text\) instead. Pass a number"),
+    (np.bool_(True), TypeError, r"\(bool_?\) instead"),
+    (float("nan"), ValueError, "positive integer"),
+])
+def test_F_rule_shared_with_the_cli(F, exc, match):
+    from lrmfrf._validation import check_downsampling_factor
+
+    with pytest.raises(exc, match=match):
+        check_downsampling_factor(F)
 
 
 @pytest.mark.parametrize("bad, exc, match", [
@@ -143,16 +159,43 @@ def test_too_few_equations_on_a_short_record_says_lower_the_degrees():
 
 
 def test_lpm_messages_use_lpm_parameter_names(data):
-    """LPM has `degree`, not `num_degree`, and no `den_degree` to lower."""
+    """LPM has no `den_degree` to lower; its numerator is `num_degree` as in
+    LRM (or `degree` when the user passed the deprecated name)."""
     u, y = data
-    with pytest.raises(ValueError, match=r"\(degree\+1\)\*F \+ \(transient_degree\+1\) "
-                       r"= \(3\+1\)\*3 \+ \(3\+1\) = 16 parameters") as info:
-        LPMBeyondNyquist(half_window=5, degree=3).fit(u, y, 3)
-    assert "lower degree or transient_degree." in str(info.value)
-    assert "num_degree" not in str(info.value)
+    with pytest.raises(ValueError, match=r"\(num_degree\+1\)\*F \+ "
+                       r"\(transient_degree\+1\) = \(3\+1\)\*3 \+ \(3\+1\) = 16 "
+                       "parameters") as info:
+        LPMBeyondNyquist(half_window=5, num_degree=3).fit(u, y, 3)
+    assert "lower num_degree or transient_degree." in str(info.value)
     assert "den_degree" not in str(info.value)
+    with pytest.raises(ValueError, match="`num_degree` must be an integer >= 0"):
+        LPMBeyondNyquist(num_degree=-1).fit(u, y, 3)
+    with pytest.warns(FutureWarning), pytest.raises(
+            ValueError, match=r"\(degree\+1\)\*F.*lower degree or transient_degree"):
+        LPMBeyondNyquist(half_window=5, degree=3).fit(u, y, 3)
     with pytest.raises(ValueError, match="`degree` must be an integer >= 0"):
         LPMBeyondNyquist(degree=-1).fit(u, y, 3)
+
+
+def test_lpm_degree_is_a_deprecated_alias_of_num_degree(data):
+    """`degree` keeps working for one release: same fit, a FutureWarning that
+    points at the caller, clone and get_params keep it."""
+    u, y = data
+    new = LPMBeyondNyquist(num_degree=3).fit(u, y, 3)
+    old = LPMBeyondNyquist(degree=3)
+    with pytest.warns(FutureWarning, match=r"`degree` was renamed `num_degree`.*"
+                      r"Pass num_degree=3 instead") as record:
+        old.fit(u, y, 3)
+    assert record[0].filename == __file__
+    np.testing.assert_array_equal(old.frf_, new.frf_)
+    assert old.n_params_ == new.n_params_
+    assert clone(old).get_params()["degree"] == 3
+    assert LPMBeyondNyquist().get_params()["degree"] == "deprecated"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the new name does not warn
+        LPMBeyondNyquist(num_degree=3).fit(u, y, 3)
+    with pytest.raises(ValueError, match="Pass num_degree only"):
+        LPMBeyondNyquist(degree=3, num_degree=4).fit(u, y, 3)
 
 
 @pytest.mark.parametrize("param", ["num_degree", "transient_degree", "den_degree",

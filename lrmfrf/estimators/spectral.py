@@ -76,7 +76,8 @@ class SpectralAnalysis(_BaseFRFEstimator):
     ----------
     frequencies_ : ndarray of shape (L//2+1,)
         Segment grid ``p / (L T_s)`` in Hz (coarser than the fast DFT grid by
-        ``N/L``).
+        ``N/L``); in cycles per sample (``p / L``) when ``fit`` got no
+        ``sample_time`` (default 1.0).
     frf_ : ndarray of shape (L//2+1,), complex
         H1 estimate (units of ``y_l`` per unit of ``u_h``); NaN where the input
         has no energy.
@@ -108,6 +109,8 @@ class SpectralAnalysis(_BaseFRFEstimator):
 
     Notes
     -----
+    The records are normalised by powers of two as in
+    :meth:`LRMBeyondNyquist.fit` (any finite scale gives the same FRF).
     Zero stuffing assumes ``Y_h(k + iM) = F Y_l(k)``: above the slow Nyquist
     frequency this estimate is aliased and biased even without noise.
     ``predict`` interpolates ``frf_`` linearly onto the fast DFT grid.
@@ -160,7 +163,8 @@ class SpectralAnalysis(_BaseFRFEstimator):
         F : int
             Downsampling factor, ``N = F M``.
         sample_time : float, default=1.0
-            Fast sample time in seconds.
+            Fast sample time in seconds. With the default 1.0, time is counted
+            in samples and ``frequencies_`` are in cycles per (fast) sample.
 
         Returns
         -------
