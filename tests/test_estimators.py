@@ -554,6 +554,31 @@ def test_to_frd(data):
     assert frd.dt == 0.5e-3
 
 
+@pytest.mark.parametrize("Est", ESTIMATORS)
+def test_to_frd_returns_the_std_on_its_frequencies(Est):
+    """to_frd(return_std=True) gives (frd, std): std[i] is frf_std_ at the
+    frequency frd.omega[i] (valid bins only: the input's gap at fast bins
+    200-399 leaves most local-model bins invalid; Hann leakage fills it for
+    SA)."""
+    bins = np.setdiff1d(np.arange(1, 600), np.arange(200, 400))
+    u = multisine(1200, bins=bins, rng=2)
+    y = 2.5 * u[::3] + 1e-3 * np.random.default_rng(2).standard_normal(400)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IdentifiabilityWarning)
+        est = Est().fit(u, y, 3, sample_time=0.5e-3)
+    assert est.valid_.sum() > 50
+    assert Est is SpectralAnalysis or est.valid_.sum() < est.valid_.size
+    frd, std = est.to_frd(return_std=True)
+    assert std.shape == frd.omega.shape
+    index = np.searchsorted(2 * np.pi * est.frequencies_, frd.omega)
+    np.testing.assert_allclose(2 * np.pi * est.frequencies_[index], frd.omega)
+    np.testing.assert_array_equal(std, est.frf_std_[index])
+    np.testing.assert_array_equal(np.squeeze(frd.frdata), est.frf_[index])
+    assert isinstance(est.to_frd(), type(frd))
+    with pytest.raises(TypeError, match="`return_std` must be True or False"):
+        est.to_frd(return_std="yes")
+
+
 # --- invariances ------------------------------------------------------------------
 
 @settings(max_examples=15, deadline=None)

@@ -138,24 +138,54 @@ class FRFEstimatorMixin:
             return 0.0 if ss_res > 0 else 1.0
         return float(1.0 - ss_res / ss_tot)
 
-    def to_frd(self):
+    def to_frd(self, *, return_std: bool = False):
         """The valid bins of the FRF as a ``control.FrequencyResponseData``.
+
+        Parameters
+        ----------
+        return_std : bool, default=False
+            Also return the standard deviation of the FRF on the FRD's
+            frequencies (scikit-learn's ``return_std`` pattern, as in
+            ``GaussianProcessRegressor.predict``).
 
         Returns
         -------
-        control.FrequencyResponseData
+        frd : control.FrequencyResponseData
             ``omega`` in rad/s, ``dt`` the fast sample time in seconds. Bins
             with ``valid_ == False`` are left out.
+        std : ndarray of shape (n_valid,)
+            Only with ``return_std=True``: ``frf_std_`` at the same bins, in
+            the order of ``frd.omega`` (``sqrt(E|G_hat - G|^2)``, units of
+            the FRF; NaN where the estimator has no std, e.g. spectral
+            analysis of a single segment).
+
+        Examples
+        --------
+        >>> from scipy.signal import lfilter
+        >>> from lrmfrf import LRMBeyondNyquist
+        >>> from lrmfrf.signals import multisine
+        >>> u = multisine(1200, rng=0)
+        >>> y = lfilter([0.2, 0.1], [1.0, -0.5], u)[::3]
+        >>> frd, std = LRMBeyondNyquist(den_degree=2).fit(u, y, F=3).to_frd(
+        ...     return_std=True)
+        >>> frd.omega.shape == std.shape
+        True
         """
         import control
 
+        from .._validation import check_bool
+
+        return_std = check_bool(return_std, "return_std")
         self._check_fitted()
         keep = self.valid_
-        return control.FrequencyResponseData(
+        frd = control.FrequencyResponseData(
             self.frf_[keep],
             2 * np.pi * self.frequencies_[keep],
             dt=self.sample_time_,
         )
+        if return_std:
+            return frd, self.frf_std_[keep].copy()
+        return frd
 
 
 class _BaseFRFEstimator(FRFEstimatorMixin, BaseEstimator):
