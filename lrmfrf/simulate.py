@@ -37,6 +37,7 @@ from ._validation import (
     check_sample_time,
     check_siso_system,
 )
+from .solvers import CHUNK_BYTES
 
 __all__ = [
     "SimulationResult",
@@ -50,7 +51,6 @@ __all__ = [
 # recursion (relative rounding error about cond * 1e-16); others use the
 # (slower, backward-stable) complex Schur cascade.
 _MAX_EIGENVECTOR_CONDITION = 1e5
-_CHUNK = 1 << 17
 
 
 @dataclass(frozen=True, eq=False)
@@ -555,8 +555,10 @@ def _simulate_schur(A, B, C, D, u, x0):
     n = T.shape[0]
     state = Q.conj().T @ x0.astype(complex)
     y = np.empty_like(u)
-    for begin in range(0, u.size, _CHUNK):
-        chunk = u[begin : begin + _CHUNK]
+    # forcing and states: two complex (n, chunk) arrays within CHUNK_BYTES
+    chunk_length = max(1, CHUNK_BYTES // (32 * n))
+    for begin in range(0, u.size, chunk_length):
+        chunk = u[begin : begin + chunk_length]
         forcing = np.outer(b, chunk)
         states = np.empty((n, chunk.size), dtype=complex)
         for i in range(n - 1, -1, -1):

@@ -40,7 +40,9 @@ CHOLESKY_FALLBACK_TOL = 1e-6
 #: is the square of the error left after it while refinement converges.
 REFINEMENT_TOL = 1e-5
 
-#: Bound on the bytes of one batch's largest arrays (regressors, Gram matrices).
+#: The package's one bound on the bytes of a batch's largest arrays: local
+#: regressors and Gram matrices here, windows refined at once
+#: (:mod:`lrmfrf.refinement`), samples simulated at once (:mod:`lrmfrf.simulate`).
 CHUNK_BYTES = 2**26
 
 #: Implementations of :func:`solve_local_normal_equations`.

@@ -452,3 +452,33 @@ def test_sk_lowers_median_error_and_guarded_lm_never_blows_up():
         worst = max(worst, float(np.max(np.abs(full.frf_ - G)[keep] / bound)))
     assert np.median(med_sk) < np.median(med_closed)
     assert worst <= 1.0
+
+
+# ------------------------------------------------------------ public entry point
+
+
+def test_public_entry_has_the_estimators_options(stage_data, capsys):
+    """The estimator refines through the public refine_local_models (its
+    `verbose` option was missing, so estimators/local.py imported the private
+    kernel); warnings from a direct call point at the caller too."""
+    import lrmfrf.estimators.local as local
+
+    pytest.importorskip("tqdm")
+    assert not hasattr(local, "_refine") and not hasattr(local, "_emit_warnings")
+    d = stage_data
+    with pytest.warns(ConvergenceWarning, match="Increase `sk_iterations`") as record:
+        refine_local_models(d["U"], d["Y"], d["layout"], d["closed"],
+                            sk_iterations=1, verbose=True)
+    assert record[0].filename == __file__
+    assert "refinement" in capsys.readouterr().err
+
+
+def test_refinement_uses_the_package_chunk_bound(stage_data):
+    """One chunk-size constant (solvers.CHUNK_BYTES): the default chunk is
+    the QR solver's."""
+    from lrmfrf import refinement, solvers
+
+    assert not hasattr(refinement, "CHUNK_BYTES")
+    assert solvers.qr_chunk_size(stage_data["layout"]) == max(
+        1, solvers.CHUNK_BYTES // (16 * stage_data["layout"].n_equations
+                                   * stage_data["layout"].n_params))

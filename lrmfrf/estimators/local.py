@@ -29,7 +29,7 @@ from ..local_models import (
     rescale_local_fit,
     scale_by_power_of_two,
 )
-from ..refinement import _emit_warnings, _refine
+from ..refinement import refine_local_models
 from ..windows import LocalModelLayout
 from ._base import _BaseFRFEstimator, _normalise_in_place
 
@@ -371,12 +371,11 @@ class LRMBeyondNyquist(_LocalModelEstimator):
         self.cost_history_ = self.sk_cost_history_ = None
         if not (sk or lm):
             return local_fit
-        result = _refine(
+        result = refine_local_models(  # warns at the caller of fit
             U, Y, layout, local_fit, sk_iterations=sk, lm_iterations=lm,
             tol=params["tol"], guard=params["guard"], jump=params["jump"],
             keep_best=True, chunk_size=None, verbose=params["verbose"],
         )
-        _emit_warnings(result, stacklevel=3)  # -> the caller of fit
         self.cost_history_ = scale_by_power_of_two(
             result.cost_history, 2 * y_exponent
         )
