@@ -33,6 +33,7 @@ __all__ = [
     "fit_local_models",
     "default_chunk_size",
     "half_slow_bins",
+    "normalise_spectra",
     "one_sided_fast_grid",
     "power_of_two_exponent",
     "rescale_local_fit",
@@ -121,7 +122,8 @@ def power_of_two_exponent(x: np.ndarray) -> int:
     Parameters
     ----------
     x : ndarray
-        A finite real signal (any shape).
+        A finite signal (any shape); for a complex array (a DFT) the largest
+        real or imaginary part counts.
 
     Returns
     -------
@@ -139,7 +141,11 @@ def power_of_two_exponent(x: np.ndarray) -> int:
     """
     if x.size == 0:
         return 0
-    peak = max(float(np.max(x)), -float(np.min(x)))  # no |x| temporary
+    if np.iscomplexobj(x):  # views of the parts, no |x| temporary
+        parts = (x.real, x.imag)
+    else:
+        parts = (x,)
+    peak = max(max(float(np.max(p)), -float(np.min(p))) for p in parts)
     if not (0.0 < peak < np.inf):
         return 0
     exponent = int(np.frexp(peak)[1])
@@ -172,6 +178,30 @@ def scale_by_power_of_two(x, exponent: int):
             out.imag = np.ldexp(x.imag, exponent)
             return out
         return np.ldexp(x, exponent)
+
+
+def normalise_spectra(U: np.ndarray, Y: np.ndarray):
+    """DFTs of the inputs and outputs normalised by powers of two.
+
+    Parameters
+    ----------
+    U : ndarray of shape (P, N), complex
+    Y : ndarray of shape (P, M), complex
+
+    Returns
+    -------
+    U, Y : ndarray
+        ``U * 2**-u_exponent`` and ``Y * 2**-y_exponent``: the arrays
+        themselves (no copy) for ordinary data.
+    u_exponent, y_exponent : int
+        From :func:`power_of_two_exponent`; undo with
+        :func:`rescale_local_fit`.
+    """
+    u_exponent = power_of_two_exponent(U)
+    y_exponent = power_of_two_exponent(Y)
+    U = scale_by_power_of_two(U, -u_exponent)
+    Y = scale_by_power_of_two(Y, -y_exponent)
+    return U, Y, u_exponent, y_exponent
 
 
 def rescale_local_fit(
@@ -296,7 +326,14 @@ def fit_local_models(
     Returns
     -------
     LocalModelFit
+
+    Notes
+    -----
+    ``U`` and ``Y`` beyond ``2**±ORDINARY_EXPONENT`` are normalised by powers
+    of two (exact) and the results scaled back (:func:`normalise_spectra`,
+    :func:`rescale_local_fit`), so any finite scale gives the same FRF.
     """
+    U, Y, u_exponent, y_exponent = normalise_spectra(U, Y)
     F = layout.F
     M = Y.shape[1]
     if slow_bins is None:
@@ -349,7 +386,7 @@ def fit_local_models(
     bad = np.flatnonzero(~well_posed)
     for arr in (theta, system, system_var, transient, noise_var, rss):
         arr[bad] = np.nan
-    return LocalModelFit(
+    fit = LocalModelFit(
         layout=layout,
         slow_bins=slow_bins,
         theta=theta,
@@ -362,6 +399,7 @@ def fit_local_models(
         excited=excited,
         leverage=leverage,
     )
+    return rescale_local_fit(fit, u_exponent, y_exponent)
 
 
 def default_chunk_size(layout: LocalModelLayout, solver: str = "qr") -> int:

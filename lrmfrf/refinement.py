@@ -56,7 +56,12 @@ from dataclasses import dataclass, replace
 import numpy as np
 from sklearn.exceptions import ConvergenceWarning
 
-from .local_models import LocalModelFit
+from .local_models import (
+    LocalModelFit,
+    normalise_spectra,
+    rescale_local_fit,
+    scale_by_power_of_two,
+)
 from .progress import progress
 from .solvers import (
     lemma2_variance,
@@ -309,6 +314,9 @@ def refine_local_models(
     >>> bool(result.cost_history[-1] <= result.cost_history[0])
     True
     """
+    # any finite scale gives the same result (exact; nothing for ordinary data)
+    U, Y, u_exponent, y_exponent = normalise_spectra(U, Y)
+    local_fit = rescale_local_fit(local_fit, -u_exponent, -y_exponent)
     result = _refine(
         U,
         Y,
@@ -323,6 +331,15 @@ def refine_local_models(
         chunk_size=chunk_size,
         verbose=verbose,
     )
+    if u_exponent or y_exponent:
+        result = replace(
+            result,
+            local_fit=rescale_local_fit(result.local_fit, u_exponent, y_exponent),
+            cost_history=scale_by_power_of_two(result.cost_history, 2 * y_exponent),
+            sk_cost_history=scale_by_power_of_two(
+                result.sk_cost_history, 2 * y_exponent
+            ),
+        )
     _emit_warnings(result)
     return result
 
