@@ -687,6 +687,7 @@ def test_lemma2_std_matches_monte_carlo_many_runs(noise_std, record_property):
 
 @pytest.mark.parametrize("module", [
     "lrmfrf.estimators.local", "lrmfrf.estimators.spectral", "lrmfrf.signals",
+    "lrmfrf.estimators._base", "lrmfrf.local_models",
 ])
 def test_docstring_examples_run(module):
     import importlib
