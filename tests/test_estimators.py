@@ -939,3 +939,29 @@ def test_predict_with_nan_names_the_nan(Est, data):
     est = Est().fit(u, y, 3)
     with pytest.raises(ValueError, match="non-finite.*before predicting"):
         est.predict(np.where(np.arange(u.size) == 3, np.nan, u))
+
+
+@settings(max_examples=20, deadline=None)
+@given(k_u=st.integers(-160, 160), k_y=st.integers(-160, 160),
+       base=st.sampled_from([2.0, 10.0]),
+       Est=st.sampled_from([LRMBeyondNyquist, LPMBeyondNyquist, SpectralAnalysis]))
+def test_scale_invariance_property(k_u, k_y, base, Est):
+    """Any pair of scales base**k (|k| <= 160, u and y independently): frf_
+    scales as y_scale/u_scale (1e-12 relative, as in the sweep above; for
+    base 2 and |k| > 33 the normalised records are the same up to a power
+    of two) and valid_ is unchanged. Ratios beyond 1e+-300 are skipped: the
+    FRF itself is then outside the float range."""
+    if abs(k_y - k_u) * np.log10(base) > 300:
+        return
+    rng = np.random.default_rng(7)
+    u = multisine(600, rng=rng)
+    y = lfilter([0.2, 0.1], [1.0, -0.5], u)[::3] + 1e-3 * rng.standard_normal(200)
+    params = {LRMBeyondNyquist: {"den_degree": 2, "half_window": 12},
+              LPMBeyondNyquist: {"half_window": 12}, SpectralAnalysis: {}}[Est]
+    ref = Est(**params).fit(u, y, 3)
+    u_scale, y_scale = base**k_u, base**k_y
+    est = Est(**params).fit(u * u_scale, y * y_scale, 3)
+    np.testing.assert_array_equal(est.valid_, ref.valid_)
+    v = ref.valid_
+    np.testing.assert_allclose(est.frf_[v] * (u_scale / y_scale), ref.frf_[v],
+                               rtol=1e-12)
