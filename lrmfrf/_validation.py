@@ -236,7 +236,9 @@ def check_record_stack(x, name: str, *, purpose: str = "fitting") -> np.ndarray:
     return np.vstack(checked)
 
 
-def check_records(u_h, y_l, F) -> tuple[np.ndarray, np.ndarray, int]:
+def check_records(
+    u_h, y_l, F, *, purpose: str = "fitting"
+) -> tuple[np.ndarray, np.ndarray, int]:
     """Validate one or several experiments.
 
     Parameters
@@ -247,6 +249,8 @@ def check_records(u_h, y_l, F) -> tuple[np.ndarray, np.ndarray, int]:
         Slow-rate output record(s), ``n_samples == F * n_slow``.
     F : int
         Downsampling factor.
+    purpose : str, default="fitting"
+        Passed to :func:`check_signal` (e.g. ``"scoring"``).
 
     Returns
     -------
@@ -262,8 +266,8 @@ def check_records(u_h, y_l, F) -> tuple[np.ndarray, np.ndarray, int]:
             f"u_h holds {n_u} experiment(s) but y_l holds {n_y}. "
             "Pass one slow output record per input record."
         )
-    u = check_record_stack(u_h, "u_h")
-    y = check_record_stack(y_l, "y_l")
+    u = check_record_stack(u_h, "u_h", purpose=purpose)
+    y = check_record_stack(y_l, "y_l", purpose=purpose)
     N, M = u.shape[1], y.shape[1]
     if N != F * M:
         raise ValueError(

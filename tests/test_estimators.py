@@ -939,6 +939,9 @@ def test_predict_with_nan_names_the_nan(Est, data):
     est = Est().fit(u, y, 3)
     with pytest.raises(ValueError, match="non-finite.*before predicting"):
         est.predict(np.where(np.arange(u.size) == 3, np.nan, u))
+    with pytest.raises(ValueError, match="`y_l` contains 1 non-finite.*before "
+                       "scoring"):
+        est.score(u, np.where(np.arange(y.size) == 3, np.nan, y))
 
 
 @settings(max_examples=20, deadline=None)

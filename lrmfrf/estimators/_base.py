@@ -126,7 +126,9 @@ class FRFEstimatorMixin:
             1 for a perfect prediction; can be negative.
         """
         self._check_fitted()
-        u, y, _ = check_records(u_h, y_l, self.downsampling_factor_)
+        u, y, _ = check_records(
+            u_h, y_l, self.downsampling_factor_, purpose="scoring"
+        )
         prediction = self.predict(u)
         # R^2 is a ratio: normalise both by the same power of two (exact)
         exponent = power_of_two_exponent(y)
