@@ -72,13 +72,27 @@ def check_bool(value, name: str) -> bool:
 def check_downsampling_factor(F) -> int:
     """Return the downsampling factor as a positive int.
 
-    ``3`` and ``3.0`` are accepted; ``2.5``, ``0``, ``True`` and strings are not.
+    The one rule for the API and the command line: a number with an integral
+    value is accepted (``3``, ``3.0``, ``np.int64(3)``, ``np.float64(3.0)``
+    all give ``3``); a non-integral number (``3.5``, NaN, inf), a value below
+    1, a bool (``True``) and text (``"3"``) are refused with a message saying
+    what to pass.
+
+    Parameters
+    ----------
+    F : int or float
+        The ratio of the slow to the fast sample time.
+
+    Returns
+    -------
+    int
     """
-    if isinstance(F, bool) or not isinstance(F, numbers.Real):
+    if isinstance(F, (bool, np.bool_)) or not isinstance(F, numbers.Real):
+        kind = "text" if isinstance(F, (str, bytes)) else type(F).__name__
         raise TypeError(
-            f"The downsampling factor F must be a positive integer. Got {F!r} of "
-            f"type {type(F).__name__} instead. Pass the ratio of the slow to the "
-            "fast sample time, e.g. F=3."
+            f"The downsampling factor F must be a positive integer. Got {F!r} "
+            f"({kind}) instead. Pass a number, the ratio of the slow to the fast "
+            "sample time, e.g. F=3."
         )
     if not float(F).is_integer() or F < 1:
         raise ValueError(
@@ -89,12 +103,34 @@ def check_downsampling_factor(F) -> int:
     return int(F)
 
 
-def check_signal(x, name: str) -> np.ndarray:
-    """Return a real, finite, non-empty 1-D float copy of ``x``."""
+def check_signal(x, name: str, *, purpose: str = "fitting") -> np.ndarray:
+    """Return a real, finite, non-empty 1-D float copy of ``x``.
+
+    Parameters
+    ----------
+    x : array-like of shape (n_samples,)
+        The signal.
+    name : str
+        How the messages call it.
+    purpose : str, default="fitting"
+        What the signal is for, in the non-finite message ("remove them before
+        ``purpose``").
+
+    Returns
+    -------
+    ndarray of shape (n_samples,), float
+    """
+    _refuse_masked(x, name)
     try:
         arr = np.array(x, copy=True)
     except Exception as exc:  # pragma: no cover - numpy raises many types
         raise TypeError(f"`{name}` could not be converted to an array: {exc}") from exc
+    if arr.dtype.kind in "mM":
+        raise TypeError(
+            f"`{name}` must hold signal values. Got dtype {arr.dtype} (times or "
+            "durations) instead. Pass the measured values; give the sample time "
+            "separately (`sample_time`)."
+        )
     if arr.dtype == object or not (
         np.issubdtype(arr.dtype, np.number) or arr.dtype == bool
     ):
@@ -122,14 +158,38 @@ def check_signal(x, name: str) -> np.ndarray:
         first = int(np.flatnonzero(bad)[0])
         raise ValueError(
             f"`{name}` contains {int(bad.sum())} non-finite value(s) (NaN or inf), "
-            f"the first at index {first}. Remove or interpolate them before fitting."
+            f"the first at index {first}. Remove or interpolate them before "
+            f"{purpose}."
         )
     return arr
 
 
+def _refuse_masked(x, name: str) -> None:
+    """Masked arrays carry a mask the estimators cannot honour: refuse them."""
+    if np.ma.isMaskedArray(x):
+        raise TypeError(
+            f"`{name}` is a masked array. The estimators need every sample of a "
+            "record (a DFT has no notion of missing samples), so a mask cannot be "
+            "honoured. Fill or interpolate the masked samples and pass a plain "
+            "array, e.g. x.filled(...) or np.ma.getdata(x) if the mask is empty."
+        )
+
+
+def _column_vector_error(name: str, shape) -> ValueError:
+    return ValueError(
+        f"`{name}` has shape {tuple(shape)}: a column vector, which would be read "
+        f"as {shape[0]} experiments of one sample each. Pass one record as a 1-D "
+        f"array ({name}.ravel()), or several experiments as rows, i.e. transpose "
+        "a (n_samples, n_experiments) array."
+    )
+
+
 def _as_record_list(x, name: str) -> list:
+    _refuse_masked(x, name)
     if isinstance(x, np.ndarray):
         if x.ndim == 2:
+            if x.shape[1] == 1 and x.shape[0] > 1:
+                raise _column_vector_error(name, x.shape)
             return [x[p] for p in range(x.shape[0])]
         return [x]
     if isinstance(x, Sequence) and not isinstance(x, (str, bytes)) and len(x) > 0:
@@ -137,12 +197,23 @@ def _as_record_list(x, name: str) -> list:
         if isinstance(first, (Sequence, np.ndarray)) and not isinstance(
             first, (str, bytes)
         ):
+            if len(x) > 1 and np.size(first) == 1 and np.size(x[1]) == 1:
+                raise _column_vector_error(name, (len(x), 1))
             return list(x)
     return [x]
 
 
-def check_record_stack(x, name: str) -> np.ndarray:
+def check_record_stack(x, name: str, *, purpose: str = "fitting") -> np.ndarray:
     """Validate one record or a stack of equal-length records.
+
+    Parameters
+    ----------
+    x : array-like of shape (n_samples,) or (n_experiments, n_samples), or list
+        The record(s).
+    name : str
+        How the messages call it.
+    purpose : str, default="fitting"
+        Passed to :func:`check_signal`.
 
     Returns
     -------
@@ -151,7 +222,7 @@ def check_record_stack(x, name: str) -> np.ndarray:
     rows = _as_record_list(x, name)
     several = len(rows) > 1
     checked = [
-        check_signal(row, f"{name}[{p}]" if several else name)
+        check_signal(row, f"{name}[{p}]" if several else name, purpose=purpose)
         for p, row in enumerate(rows)
     ]
     lengths = sorted({len(row) for row in checked})
@@ -160,10 +231,14 @@ def check_record_stack(x, name: str) -> np.ndarray:
             f"All records of `{name}` must have equal length. Got lengths "
             f"{lengths}. Trim the records to a common length."
         )
+    if several and lengths == [1]:
+        raise _column_vector_error(name, (len(checked), 1))
     return np.vstack(checked)
 
 
-def check_records(u_h, y_l, F) -> tuple[np.ndarray, np.ndarray, int]:
+def check_records(
+    u_h, y_l, F, *, purpose: str = "fitting"
+) -> tuple[np.ndarray, np.ndarray, int]:
     """Validate one or several experiments.
 
     Parameters
@@ -174,6 +249,8 @@ def check_records(u_h, y_l, F) -> tuple[np.ndarray, np.ndarray, int]:
         Slow-rate output record(s), ``n_samples == F * n_slow``.
     F : int
         Downsampling factor.
+    purpose : str, default="fitting"
+        Passed to :func:`check_signal` (e.g. ``"scoring"``).
 
     Returns
     -------
@@ -189,8 +266,8 @@ def check_records(u_h, y_l, F) -> tuple[np.ndarray, np.ndarray, int]:
             f"u_h holds {n_u} experiment(s) but y_l holds {n_y}. "
             "Pass one slow output record per input record."
         )
-    u = check_record_stack(u_h, "u_h")
-    y = check_record_stack(y_l, "y_l")
+    u = check_record_stack(u_h, "u_h", purpose=purpose)
+    y = check_record_stack(y_l, "y_l", purpose=purpose)
     N, M = u.shape[1], y.shape[1]
     if N != F * M:
         raise ValueError(

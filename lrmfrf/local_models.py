@@ -10,7 +10,7 @@ results to the fast grid ``k = 0..N//2`` using conjugate symmetry.
 from __future__ import annotations
 
 import contextlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import fft as sp_fft
@@ -33,7 +33,11 @@ __all__ = [
     "fit_local_models",
     "default_chunk_size",
     "half_slow_bins",
+    "normalise_spectra",
     "one_sided_fast_grid",
+    "power_of_two_exponent",
+    "rescale_local_fit",
+    "scale_by_power_of_two",
     "window_excitation",
 ]
 
@@ -43,6 +47,14 @@ SOLVERS = ("auto", "normal", "qr")
 #: A window whose input energy in some band is below this fraction of the
 #: average is declared not excited (exact zeros up to DFT round-off).
 EXCITATION_TOL = 1e-12
+
+#: Signals whose largest magnitude is within ``2**-ORDINARY_EXPONENT`` ..
+#: ``2**ORDINARY_EXPONENT`` are used as they are; others are normalised by a
+#: power of two before the DFT (see :func:`power_of_two_exponent`). The
+#: estimators square DFT values and multiply squares (Gram matrices, variances):
+#: with a margin of 64 binary orders for the record length and the window sums
+#: this stays far from overflow and underflow.
+ORDINARY_EXPONENT = 64
 
 
 @dataclass
@@ -94,6 +106,147 @@ def dft(x: np.ndarray) -> np.ndarray:
     ndarray of shape (..., N), complex
     """
     return sp_fft.fft(x, axis=-1)
+
+
+def power_of_two_exponent(x: np.ndarray) -> int:
+    """Binary exponent that normalises a signal, or 0 for an ordinary one.
+
+    The FRF is a ratio of output to input, so the estimators may scale the
+    input and the output by any constants and undo it on the results. Scaling
+    by a power of two ``2**-e`` is exact (no rounding, only the exponent
+    changes), so the estimate at any finite scale equals the estimate at the
+    normalised one. Ordinary data (largest magnitude within
+    ``2**±ORDINARY_EXPONENT``) get ``e = 0``: nothing is scaled and the results
+    are bit for bit those of the unscaled computation.
+
+    Parameters
+    ----------
+    x : ndarray
+        A finite signal (any shape); for a complex array (a DFT) the largest
+        real or imaginary part counts.
+
+    Returns
+    -------
+    int
+        ``e`` such that the largest magnitude of ``x * 2**-e`` is in
+        ``[0.5, 1)``, or 0 when ``x`` is ordinary or all zero.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> power_of_two_exponent(np.array([3.0, -1.0]))
+    0
+    >>> power_of_two_exponent(np.array([3.0, -1.0]) * 2.0**200)
+    202
+    """
+    if x.size == 0:
+        return 0
+    if np.iscomplexobj(x):  # views of the parts, no |x| temporary
+        parts = (x.real, x.imag)
+    else:
+        parts = (x,)
+    peak = max(max(float(np.max(p)), -float(np.min(p))) for p in parts)
+    if not (0.0 < peak < np.inf):
+        return 0
+    exponent = int(np.frexp(peak)[1])
+    return 0 if abs(exponent) <= ORDINARY_EXPONENT else exponent
+
+
+def scale_by_power_of_two(x, exponent: int):
+    """``x * 2**exponent``, exact, for real or complex arrays.
+
+    Returns ``x`` itself (no copy) when ``exponent == 0``. Values beyond the
+    float range become inf (or underflow towards 0), silently: e.g. the
+    variance of an FRF of 1e200 is 1e400, which no float holds.
+
+    Parameters
+    ----------
+    x : ndarray or None
+    exponent : int
+
+    Returns
+    -------
+    ndarray or None
+    """
+    if exponent == 0 or x is None:
+        return x
+    x = np.asarray(x)
+    with np.errstate(over="ignore", under="ignore"):
+        if np.iscomplexobj(x):
+            out = np.empty_like(x)
+            out.real = np.ldexp(x.real, exponent)
+            out.imag = np.ldexp(x.imag, exponent)
+            return out
+        return np.ldexp(x, exponent)
+
+
+def normalise_spectra(U: np.ndarray, Y: np.ndarray):
+    """DFTs of the inputs and outputs normalised by powers of two.
+
+    Parameters
+    ----------
+    U : ndarray of shape (P, N), complex
+    Y : ndarray of shape (P, M), complex
+
+    Returns
+    -------
+    U, Y : ndarray
+        ``U * 2**-u_exponent`` and ``Y * 2**-y_exponent``: the arrays
+        themselves (no copy) for ordinary data.
+    u_exponent, y_exponent : int
+        From :func:`power_of_two_exponent`; undo with
+        :func:`rescale_local_fit`.
+    """
+    u_exponent = power_of_two_exponent(U)
+    y_exponent = power_of_two_exponent(Y)
+    U = scale_by_power_of_two(U, -u_exponent)
+    Y = scale_by_power_of_two(Y, -y_exponent)
+    return U, Y, u_exponent, y_exponent
+
+
+def rescale_local_fit(
+    local_fit: LocalModelFit, u_exponent: int, y_exponent: int
+) -> LocalModelFit:
+    """Undo the normalisation of the records on every scale-carrying result.
+
+    A fit on ``u * 2**-u_exponent`` and ``y * 2**-y_exponent`` becomes the fit
+    on ``u`` and ``y``: system numerators and values scale as ``y/u``,
+    transients as ``y``, variances and residuals as their squares; the
+    denominator coefficients and the leverages are dimensionless.
+
+    Parameters
+    ----------
+    local_fit : LocalModelFit
+        Fit on the normalised records.
+    u_exponent, y_exponent : int
+        The exponents of :func:`power_of_two_exponent` used for the input and
+        the output.
+
+    Returns
+    -------
+    LocalModelFit
+        ``local_fit`` itself when both exponents are 0, else a rescaled copy.
+    """
+    if u_exponent == 0 and y_exponent == 0:
+        return local_fit
+    layout = local_fit.layout
+    system_exponent = y_exponent - u_exponent
+    theta = local_fit.theta.copy()
+    n_sys, n_tr = layout.n_system, layout.n_transient
+    theta[:, :n_sys] = scale_by_power_of_two(theta[:, :n_sys], system_exponent)
+    transient_cols = slice(n_sys, n_sys + n_tr)
+    theta[:, transient_cols] = scale_by_power_of_two(
+        theta[:, transient_cols], y_exponent
+    )
+    return replace(
+        local_fit,
+        theta=theta,
+        system=scale_by_power_of_two(local_fit.system, system_exponent),
+        system_var=scale_by_power_of_two(local_fit.system_var, 2 * system_exponent),
+        transient=scale_by_power_of_two(local_fit.transient, y_exponent),
+        noise_var=scale_by_power_of_two(local_fit.noise_var, 2 * y_exponent),
+        rss=scale_by_power_of_two(local_fit.rss, 2 * y_exponent),
+    )
 
 
 def half_slow_bins(n_slow: int) -> np.ndarray:
@@ -173,7 +326,14 @@ def fit_local_models(
     Returns
     -------
     LocalModelFit
+
+    Notes
+    -----
+    ``U`` and ``Y`` beyond ``2**±ORDINARY_EXPONENT`` are normalised by powers
+    of two (exact) and the results scaled back (:func:`normalise_spectra`,
+    :func:`rescale_local_fit`), so any finite scale gives the same FRF.
     """
+    U, Y, u_exponent, y_exponent = normalise_spectra(U, Y)
     F = layout.F
     M = Y.shape[1]
     if slow_bins is None:
@@ -226,7 +386,7 @@ def fit_local_models(
     bad = np.flatnonzero(~well_posed)
     for arr in (theta, system, system_var, transient, noise_var, rss):
         arr[bad] = np.nan
-    return LocalModelFit(
+    fit = LocalModelFit(
         layout=layout,
         slow_bins=slow_bins,
         theta=theta,
@@ -239,6 +399,7 @@ def fit_local_models(
         excited=excited,
         leverage=leverage,
     )
+    return rescale_local_fit(fit, u_exponent, y_exponent)
 
 
 def default_chunk_size(layout: LocalModelLayout, solver: str = "qr") -> int:

@@ -45,7 +45,7 @@ def table1_estimators() -> dict:
         "LRM": LRMBeyondNyquist(
             half_window=18, num_degree=4, transient_degree=4, den_degree=7
         ),
-        "LPM": LPMBeyondNyquist(half_window=18, degree=2),
+        "LPM": LPMBeyondNyquist(half_window=18, num_degree=2),
         "SA": SpectralAnalysis(segment_length=200, overlap=100),
     }
 

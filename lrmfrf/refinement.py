@@ -48,15 +48,27 @@ guard acted are counted.
 
 from __future__ import annotations
 
+import os
+import sys
 import warnings
 from dataclasses import dataclass, replace
 
 import numpy as np
 from sklearn.exceptions import ConvergenceWarning
 
-from .local_models import CHUNK_BYTES, LocalModelFit
+from .local_models import (
+    LocalModelFit,
+    normalise_spectra,
+    rescale_local_fit,
+    scale_by_power_of_two,
+)
 from .progress import progress
-from .solvers import lemma2_variance, noise_variance, solve_local_least_squares
+from .solvers import (
+    lemma2_variance,
+    noise_variance,
+    qr_chunk_size,
+    solve_local_least_squares,
+)
 from .windows import LocalModelLayout, local_regressor, window_offsets
 
 __all__ = [
@@ -213,6 +225,7 @@ def refine_local_models(
     jump: float | None = 5.0,
     keep_best: bool = True,
     chunk_size: int | None = None,
+    verbose: bool = False,
 ) -> RefinementResult:
     """Refine closed-form local models with SK, then guarded LM iterations.
 
@@ -249,7 +262,10 @@ def refine_local_models(
         last SK iterate is kept.
     chunk_size : int, optional
         Windows refined at once; default bounds a chunk's regressor to
-        64 MiB, as :func:`lrmfrf.local_models.fit_local_models`.
+        :data:`lrmfrf.solvers.CHUNK_BYTES` (64 MiB), as
+        :func:`lrmfrf.local_models.fit_local_models`.
+    verbose : bool, default=False
+        Show a progress bar over the chunks (long records; needs tqdm).
 
     Returns
     -------
@@ -298,6 +314,9 @@ def refine_local_models(
     >>> bool(result.cost_history[-1] <= result.cost_history[0])
     True
     """
+    # any finite scale gives the same result (exact; nothing for ordinary data)
+    U, Y, u_exponent, y_exponent = normalise_spectra(U, Y)
+    local_fit = rescale_local_fit(local_fit, -u_exponent, -y_exponent)
     result = _refine(
         U,
         Y,
@@ -310,8 +329,18 @@ def refine_local_models(
         jump=jump,
         keep_best=keep_best,
         chunk_size=chunk_size,
+        verbose=verbose,
     )
-    _emit_warnings(result, stacklevel=2)
+    if u_exponent or y_exponent:
+        result = replace(
+            result,
+            local_fit=rescale_local_fit(result.local_fit, u_exponent, y_exponent),
+            cost_history=scale_by_power_of_two(result.cost_history, 2 * y_exponent),
+            sk_cost_history=scale_by_power_of_two(
+                result.sk_cost_history, 2 * y_exponent
+            ),
+        )
+    _emit_warnings(result)
     return result
 
 
@@ -337,8 +366,7 @@ def _refine(
     slow_bins = np.asarray(local_fit.slow_bins, dtype=int)
     B = slow_bins.size
     if chunk_size is None:
-        per_window = 16 * layout.n_equations * layout.n_params
-        chunk_size = max(1, CHUNK_BYTES // per_window)
+        chunk_size = qr_chunk_size(layout)
     guard_radius = 0.0 if not guard else float(guard) / max(layout.half_window, 1)
     jump_limit = np.full((B, F), np.inf)
     if jump is not None:
@@ -413,8 +441,25 @@ def _still_dropping(history, tol) -> bool:
     return bool(drop > max(tol, FAR_FROM_CONVERGENCE))
 
 
-def _emit_warnings(result: RefinementResult, *, stacklevel: int) -> None:
-    """Warn once per fit; ``stacklevel`` as seen from the caller's caller."""
+def _caller_stacklevel() -> int:
+    """``stacklevel`` of the first frame outside the package, as seen from the
+    function that calls ``warnings.warn`` (so that a warning points at user
+    code whether it came through an estimator's ``fit`` or
+    :func:`refine_local_models`)."""
+    package = os.path.dirname(os.path.abspath(__file__)) + os.sep
+    frame = sys._getframe(1)  # the caller of this function: level 1
+    level = 1
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(
+        package
+    ):
+        frame = frame.f_back
+        level += 1
+    return level
+
+
+def _emit_warnings(result: RefinementResult) -> None:
+    """Warn once per fit, at the first caller outside the package."""
+    stacklevel = _caller_stacklevel()
     names = (
         ("Sanathanan-Koerner", "sk_iterations", result.sk_iterations),
         ("Levenberg-Marquardt", "lm_iterations", result.lm_iterations),
@@ -426,7 +471,7 @@ def _emit_warnings(result: RefinementResult, *, stacklevel: int) -> None:
                 f"still dropping by more than {FAR_FROM_CONVERGENCE:.0e} per "
                 f"iteration. Increase `{parameter}` for a converged estimate.",
                 ConvergenceWarning,
-                stacklevel=stacklevel + 1,
+                stacklevel=stacklevel,
             )
     if result.n_guarded:
         warnings.warn(
@@ -435,7 +480,7 @@ def _emit_warnings(result: RefinementResult, *, stacklevel: int) -> None:
             f"{result.n_guarded} of {result.guarded.size} windows; they keep "
             "their last good estimate. See `n_guarded_` / `guarded`.",
             RefinementGuardWarning,
-            stacklevel=stacklevel + 1,
+            stacklevel=stacklevel,
         )
 
 

@@ -31,7 +31,13 @@ import scipy.signal
 import scipy.sparse
 import scipy.sparse.csgraph
 
-from ._validation import check_downsampling_factor, check_siso_system
+from ._validation import (
+    check_downsampling_factor,
+    check_nonnegative_int,
+    check_sample_time,
+    check_siso_system,
+)
+from .solvers import CHUNK_BYTES
 
 __all__ = [
     "SimulationResult",
@@ -45,7 +51,6 @@ __all__ = [
 # recursion (relative rounding error about cond * 1e-16); others use the
 # (slower, backward-stable) complex Schur cascade.
 _MAX_EIGENVECTOR_CONDITION = 1e5
-_CHUNK = 1 << 17
 
 
 @dataclass(frozen=True, eq=False)
@@ -91,7 +96,7 @@ class SimulationResult:
 
 
 def simulate(
-    system: control.StateSpace,
+    system: control.StateSpace | control.TransferFunction,
     u_h: np.ndarray,
     F: int,
     *,
@@ -110,8 +115,10 @@ def simulate(
 
     Parameters
     ----------
-    system : control.StateSpace
-        Discrete-time SISO system.
+    system : control.StateSpace or control.TransferFunction
+        Discrete-time SISO system. A transfer function is converted with
+        ``control.ss`` (as ``diagnose`` does); ``x0`` and ``x_final`` then
+        refer to the states of that realisation.
     u_h : array_like of shape (N,)
         Fast-rate input; finite, ``N`` a multiple of ``F``.
     F : int
@@ -136,7 +143,8 @@ def simulate(
     Raises
     ------
     TypeError
-        If ``system`` is not a ``control.StateSpace`` or ``rng`` is invalid.
+        If ``system`` is not a ``control.StateSpace`` or
+        ``control.TransferFunction``, or ``rng`` is invalid.
     ValueError
         For continuous or MIMO systems, mismatched sample times, non-1-D or
         non-finite input, ``N`` not a multiple of ``F``, a wrong ``x0`` shape,
@@ -180,7 +188,10 @@ def simulate(
 
 
 def true_frf(
-    system: control.StateSpace, n_samples: int, *, one_sided: bool = True
+    system: control.StateSpace | control.TransferFunction,
+    n_samples: int,
+    *,
+    one_sided: bool = True,
 ) -> np.ndarray:
     """Frequency response ``C (z I - A)^-1 B + D`` on the DFT grid.
 
@@ -189,7 +200,7 @@ def true_frf(
 
     Parameters
     ----------
-    system : control.StateSpace
+    system : control.StateSpace or control.TransferFunction
         Discrete-time SISO system.
     n_samples : int
         Record length ``N`` (number of DFT bins), >= 1.
@@ -215,7 +226,7 @@ def true_frf(
 
 
 def transient_frf(
-    system: control.StateSpace,
+    system: control.StateSpace | control.TransferFunction,
     n_samples: int,
     x0: np.ndarray,
     x_final: np.ndarray,
@@ -231,7 +242,7 @@ def transient_frf(
 
     Parameters
     ----------
-    system : control.StateSpace
+    system : control.StateSpace or control.TransferFunction
         Discrete-time SISO system.
     n_samples : int
         Record length ``N``, >= 1.
@@ -272,15 +283,8 @@ def frequency_grid(n_samples: int, sample_time: float) -> np.ndarray:
     array([   0.,  500., 1000.])
     """
     n = _check_n_samples(n_samples)
-    if not (
-        isinstance(sample_time, numbers.Real)
-        and math.isfinite(sample_time)
-        and sample_time > 0
-    ):
-        raise ValueError(
-            f"sample_time must be a finite number > 0 s; got {sample_time!r}."
-        )
-    return np.arange(n // 2 + 1) / (n * float(sample_time))
+    sample_time = check_sample_time(sample_time)
+    return np.arange(n // 2 + 1) / (n * sample_time)
 
 
 # ---------------------------------------------------------------------------
@@ -289,18 +293,14 @@ def frequency_grid(n_samples: int, sample_time: float) -> np.ndarray:
 
 
 def _check_system(system, sample_time):
-    """Return ``A, B (n,), C (n,), D (scalar), dt`` of a discrete SISO system."""
-    check_siso_system(system, "system", state_space_only=True)
+    """Return ``A, B (n,), C (n,), D (scalar), dt`` of a discrete SISO system
+    (a ``control.TransferFunction`` is converted with ``control.ss``)."""
+    check_siso_system(system, "system")
+    if isinstance(system, control.TransferFunction):
+        system = control.ss(system)
     dt = None if system.dt is True else float(system.dt)
     if sample_time is not None:
-        if not (
-            isinstance(sample_time, numbers.Real)
-            and math.isfinite(sample_time)
-            and sample_time > 0
-        ):
-            raise ValueError(
-                f"sample_time must be a finite number > 0 s; got {sample_time!r}."
-            )
+        sample_time = check_sample_time(sample_time)
         if dt is not None and not math.isclose(dt, sample_time, rel_tol=1e-9):
             raise ValueError(
                 f"sample_time={sample_time!r} s does not match system.dt={dt!r} s. "
@@ -365,14 +365,7 @@ def _check_rng(rng) -> np.random.Generator:
 
 
 def _check_n_samples(n_samples) -> int:
-    if isinstance(n_samples, bool) or not isinstance(n_samples, numbers.Integral):
-        raise TypeError(
-            f"n_samples must be an int; got {n_samples!r} of type "
-            f"{type(n_samples).__name__}."
-        )
-    if n_samples < 1:
-        raise ValueError(f"n_samples must be >= 1; got {n_samples}.")
-    return int(n_samples)
+    return check_nonnegative_int(n_samples, "n_samples", minimum=1)
 
 
 def _noise_std(y_clean: np.ndarray, snr_db, noise_std) -> float:
@@ -562,8 +555,10 @@ def _simulate_schur(A, B, C, D, u, x0):
     n = T.shape[0]
     state = Q.conj().T @ x0.astype(complex)
     y = np.empty_like(u)
-    for begin in range(0, u.size, _CHUNK):
-        chunk = u[begin : begin + _CHUNK]
+    # forcing and states: two complex (n, chunk) arrays within CHUNK_BYTES
+    chunk_length = max(1, CHUNK_BYTES // (32 * n))
+    for begin in range(0, u.size, chunk_length):
+        chunk = u[begin : begin + chunk_length]
         forcing = np.outer(b, chunk)
         states = np.empty((n, chunk.size), dtype=complex)
         for i in range(n - 1, -1, -1):

@@ -40,7 +40,9 @@ CHOLESKY_FALLBACK_TOL = 1e-6
 #: is the square of the error left after it while refinement converges.
 REFINEMENT_TOL = 1e-5
 
-#: Bound on the bytes of one batch's largest arrays (regressors, Gram matrices).
+#: The package's one bound on the bytes of a batch's largest arrays: local
+#: regressors and Gram matrices here, windows refined at once
+#: (:mod:`lrmfrf.refinement`), samples simulated at once (:mod:`lrmfrf.simulate`).
 CHUNK_BYTES = 2**26
 
 #: Implementations of :func:`solve_local_normal_equations`.
@@ -121,12 +123,21 @@ def solve_local_least_squares(
     norms = np.linalg.norm(A, axis=1)  # (B, p)
     zero_column = norms <= np.finfo(float).tiny
     safe_norms = np.where(zero_column, 1.0, norms)
-    Q, R = np.linalg.qr(A / safe_norms[:, None, :])
+    A_eq = A / safe_norms[:, None, :]
+    Q, R = np.linalg.qr(A_eq)
     diag = np.abs(np.diagonal(R, axis1=1, axis2=2))
     p = A.shape[2]
     m = p if rank_columns is None else rank_columns
     well_posed = ~zero_column[:, :m].any(axis=1) & (
         diag[:, :m].min(axis=1) > rank_tol * diag[:, :m].max(axis=1)
+    )
+    # Columns beyond the leading block that depend on others (e.g. a
+    # denominator block of rank 1 where the output is zero but in one row):
+    # the triangular solve would divide round-off by a tiny pivot. Those
+    # windows are solved by the truncated SVD instead.
+    trailing = np.where(zero_column, np.inf, diag)
+    deficient = well_posed & (
+        trailing.min(axis=1) <= rank_tol * diag.max(axis=1)
     )
     R = np.where(well_posed[:, None, None], R, np.eye(p))
     idx = np.arange(p)
@@ -134,11 +145,19 @@ def solve_local_least_squares(
     R_inv = np.linalg.inv(R)
     qhb = np.einsum("bij,bi->bj", Q.conj(), b)
     z = np.einsum("bij,bj->bi", R_inv, qhb)
+    gram_inv_eq = np.sum(np.abs(R_inv) ** 2, axis=2)
+    leverage = np.sum(np.abs(Q) ** 2, axis=2) if return_leverage else None
+    if deficient.any():
+        sel = np.flatnonzero(deficient)
+        z[sel], gram_inv_eq[sel], lev = _truncated_svd_solve(
+            A_eq[sel], b[sel], rank_tol
+        )
+        if leverage is not None:
+            leverage[sel] = lev
     theta = np.where(zero_column, 0.0, z / safe_norms)
-    gram_inv_diag = np.sum(np.abs(R_inv) ** 2, axis=2) / safe_norms**2
+    gram_inv_diag = gram_inv_eq / safe_norms**2
     residual = b - np.einsum("bij,bj->bi", A, theta)
     rss = np.sum(np.abs(residual) ** 2, axis=1)
-    leverage = np.sum(np.abs(Q) ** 2, axis=2) if return_leverage else None
     bad = ~well_posed
     theta[bad] = np.nan
     gram_inv_diag[bad] = np.nan
@@ -146,6 +165,32 @@ def solve_local_least_squares(
     if leverage is not None:
         leverage[bad] = np.nan
     return LocalSolution(theta, gram_inv_diag, rss, well_posed, leverage)
+
+
+def _truncated_svd_solve(A_eq, b, rank_tol):
+    """Minimum-norm least squares of equilibrated, rank-deficient windows.
+
+    Singular values below ``rank_tol`` times the largest are dropped. The
+    window-centre values ``G(k+fM)`` are the same for every least-squares
+    solution when only trailing (denominator) columns are dependent, so the
+    minimum-norm one gives them without amplifying round-off; the diagonal of
+    the pseudo-inverse Gram matrix is their variance factor.
+
+    Returns
+    -------
+    z : ndarray of shape (B, p), complex
+    gram_inv_eq : ndarray of shape (B, p)
+        Diagonal of ``(A_eq^H A_eq)^+``.
+    leverage : ndarray of shape (B, n_equations)
+    """
+    U, s, Vh = np.linalg.svd(A_eq, full_matrices=False)
+    keep = s > rank_tol * s[:, :1]
+    inv_s = np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0)
+    uhb = np.einsum("bij,bi->bj", U.conj(), b)
+    z = np.einsum("bji,bj->bi", Vh.conj(), inv_s * uhb)
+    gram_inv_eq = np.einsum("bji,bj->bi", np.abs(Vh) ** 2, inv_s**2)
+    leverage = np.sum(np.abs(U) ** 2 * keep[:, None, :], axis=2)
+    return z, gram_inv_eq, leverage
 
 
 def noise_variance(rss: np.ndarray, dof: int) -> np.ndarray:

@@ -80,7 +80,7 @@ def test_F1_is_textbook_single_rate_model(den_degree):
         est = LRMBeyondNyquist(half_window=n, num_degree=Rn, transient_degree=Rt,
                                den_degree=den_degree)
     else:
-        est = LPMBeyondNyquist(half_window=n, degree=Rn)
+        est = LPMBeyondNyquist(half_window=n, num_degree=Rn)
     est.fit(u, y, F=1)
     U, Y = np.fft.fft(u), np.fft.fft(y)
     bins = np.arange(0, 301, 7)
@@ -136,7 +136,7 @@ def test_lpm_is_lrm_with_zero_denominator():
     rng = np.random.default_rng(5)
     u = multisine(1200, rng=rng)
     y = simulate_resonant(u, 3, 1e-2, rng)
-    lpm = LPMBeyondNyquist(half_window=15, degree=3).fit(u, y, 3)
+    lpm = LPMBeyondNyquist(half_window=15, num_degree=3).fit(u, y, 3)
     lrm = LRMBeyondNyquist(half_window=15, num_degree=3, transient_degree=3,
                            den_degree=0).fit(u, y, 3)
     np.testing.assert_array_equal(lpm.frf_, lrm.frf_)
@@ -211,3 +211,33 @@ def test_dft_is_the_unnormalised_dft():
     direct = x @ np.exp(-2j * np.pi * np.outer(n, n) / 101)
     np.testing.assert_allclose(dft(x), direct, rtol=1e-12, atol=1e-12 * 101)
     np.testing.assert_allclose(dft(x), np.fft.fft(x, axis=1), rtol=1e-13, atol=1e-13)
+
+
+def test_dependent_trailing_columns_do_not_amplify_round_off():
+    """Leading columns full rank, trailing columns of rank 1 (a denominator
+    block where the output is zero but in one row). The leading coefficients
+    are the same for every least-squares solution; the triangular solve of
+    QR divided round-off by pivots of ~1e-16 and returned coefficients of
+    ~1e73 here, the truncated SVD returns the unique values (to 1e-12
+    absolute of numpy's lstsq with the same cutoff: the coefficients are
+    ~1e-4, the fit of 1e-3 noise, and the 800 in b leaves round-off of
+    ~800 * 1e-16 * cond)."""
+    from lrmfrf.solvers import solve_local_least_squares
+
+    rng = np.random.default_rng(5)
+    n_eq, lead = 37, 6
+    leading = rng.standard_normal((n_eq, lead)) + 1j * rng.standard_normal((n_eq, lead))
+    row = np.zeros(n_eq, dtype=complex)
+    row[3] = 800.0
+    x = np.linspace(-1, 1, n_eq)
+    trailing = -(row[:, None] * x[:, None] ** np.arange(1, 8))  # rank 1
+    A = np.concatenate([leading, trailing], axis=1)[None]
+    b = (row + 1e-3 * rng.standard_normal(n_eq))[None]
+    solution = solve_local_least_squares(A, b, rank_columns=lead)
+    assert solution.well_posed[0]
+    reference = np.linalg.lstsq(A[0] / np.linalg.norm(A[0], axis=0), b[0],
+                                rcond=1e-10)[0] / np.linalg.norm(A[0], axis=0)
+    np.testing.assert_allclose(solution.theta[0, :lead], reference[:lead],
+                               rtol=0, atol=1e-12)
+    assert np.all(np.isfinite(solution.gram_inv_diag[0, :lead]))
+    assert np.abs(solution.theta[0, :lead]).max() < 1.0

@@ -82,11 +82,27 @@ def test_non_integer_downsampling_factor_rejected(F):
         LRMBeyondNyquist().fit(u, u[::3], F)
 
 
-def test_float_integer_F_accepted(data):
+@pytest.mark.parametrize("F", [3.0, np.float64(3.0), np.float32(3.0), np.int64(3)])
+def test_float_integer_F_accepted(F, data):
+    """One rule with the CLI: an integral value is F = 3 (an int)."""
     u, y = data
-    a = LRMBeyondNyquist().fit(u, y, 3.0)
+    a = LRMBeyondNyquist().fit(u, y, F)
     b = LRMBeyondNyquist().fit(u, y, 3)
     np.testing.assert_array_equal(a.frf_, b.frf_)
+    assert type(a.downsampling_factor_) is int and a.downsampling_factor_ == 3
+
+
+@pytest.mark.parametrize("F, exc, match", [
+    (3.5, ValueError, "Got 3.5 instead"),
+    ("3", TypeError, r"Got '3' \(text\) instead. Pass a number"),
+    (np.bool_(True), TypeError, r"\(bool_?\) instead"),
+    (float("nan"), ValueError, "positive integer"),
+])
+def test_F_rule_shared_with_the_cli(F, exc, match):
+    from lrmfrf._validation import check_downsampling_factor
+
+    with pytest.raises(exc, match=match):
+        check_downsampling_factor(F)
 
 
 @pytest.mark.parametrize("bad, exc, match", [
@@ -143,16 +159,43 @@ def test_too_few_equations_on_a_short_record_says_lower_the_degrees():
 
 
 def test_lpm_messages_use_lpm_parameter_names(data):
-    """LPM has `degree`, not `num_degree`, and no `den_degree` to lower."""
+    """LPM has no `den_degree` to lower; its numerator is `num_degree` as in
+    LRM (or `degree` when the user passed the deprecated name)."""
     u, y = data
-    with pytest.raises(ValueError, match=r"\(degree\+1\)\*F \+ \(transient_degree\+1\) "
-                       r"= \(3\+1\)\*3 \+ \(3\+1\) = 16 parameters") as info:
-        LPMBeyondNyquist(half_window=5, degree=3).fit(u, y, 3)
-    assert "lower degree or transient_degree." in str(info.value)
-    assert "num_degree" not in str(info.value)
+    with pytest.raises(ValueError, match=r"\(num_degree\+1\)\*F \+ "
+                       r"\(transient_degree\+1\) = \(3\+1\)\*3 \+ \(3\+1\) = 16 "
+                       "parameters") as info:
+        LPMBeyondNyquist(half_window=5, num_degree=3).fit(u, y, 3)
+    assert "lower num_degree or transient_degree." in str(info.value)
     assert "den_degree" not in str(info.value)
+    with pytest.raises(ValueError, match="`num_degree` must be an integer >= 0"):
+        LPMBeyondNyquist(num_degree=-1).fit(u, y, 3)
+    with pytest.warns(FutureWarning), pytest.raises(
+            ValueError, match=r"\(degree\+1\)\*F.*lower degree or transient_degree"):
+        LPMBeyondNyquist(half_window=5, degree=3).fit(u, y, 3)
     with pytest.raises(ValueError, match="`degree` must be an integer >= 0"):
         LPMBeyondNyquist(degree=-1).fit(u, y, 3)
+
+
+def test_lpm_degree_is_a_deprecated_alias_of_num_degree(data):
+    """`degree` keeps working for one release: same fit, a FutureWarning that
+    points at the caller, clone and get_params keep it."""
+    u, y = data
+    new = LPMBeyondNyquist(num_degree=3).fit(u, y, 3)
+    old = LPMBeyondNyquist(degree=3)
+    with pytest.warns(FutureWarning, match=r"`degree` was renamed `num_degree`.*"
+                      r"Pass num_degree=3 instead") as record:
+        old.fit(u, y, 3)
+    assert record[0].filename == __file__
+    np.testing.assert_array_equal(old.frf_, new.frf_)
+    assert old.n_params_ == new.n_params_
+    assert clone(old).get_params()["degree"] == 3
+    assert LPMBeyondNyquist().get_params()["degree"] == "deprecated"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the new name does not warn
+        LPMBeyondNyquist(num_degree=3).fit(u, y, 3)
+    with pytest.raises(ValueError, match="Pass num_degree only"):
+        LPMBeyondNyquist(degree=3, num_degree=4).fit(u, y, 3)
 
 
 @pytest.mark.parametrize("param", ["num_degree", "transient_degree", "den_degree",
@@ -511,6 +554,31 @@ def test_to_frd(data):
     assert frd.dt == 0.5e-3
 
 
+@pytest.mark.parametrize("Est", ESTIMATORS)
+def test_to_frd_returns_the_std_on_its_frequencies(Est):
+    """to_frd(return_std=True) gives (frd, std): std[i] is frf_std_ at the
+    frequency frd.omega[i] (valid bins only: the input's gap at fast bins
+    200-399 leaves most local-model bins invalid; Hann leakage fills it for
+    SA)."""
+    bins = np.setdiff1d(np.arange(1, 600), np.arange(200, 400))
+    u = multisine(1200, bins=bins, rng=2)
+    y = 2.5 * u[::3] + 1e-3 * np.random.default_rng(2).standard_normal(400)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IdentifiabilityWarning)
+        est = Est().fit(u, y, 3, sample_time=0.5e-3)
+    assert est.valid_.sum() > 50
+    assert Est is SpectralAnalysis or est.valid_.sum() < est.valid_.size
+    frd, std = est.to_frd(return_std=True)
+    assert std.shape == frd.omega.shape
+    index = np.searchsorted(2 * np.pi * est.frequencies_, frd.omega)
+    np.testing.assert_allclose(2 * np.pi * est.frequencies_[index], frd.omega)
+    np.testing.assert_array_equal(std, est.frf_std_[index])
+    np.testing.assert_array_equal(np.squeeze(frd.frdata), est.frf_[index])
+    assert isinstance(est.to_frd(), type(frd))
+    with pytest.raises(TypeError, match="`return_std` must be True or False"):
+        est.to_frd(return_std="yes")
+
+
 # --- invariances ------------------------------------------------------------------
 
 @settings(max_examples=15, deadline=None)
@@ -619,6 +687,7 @@ def test_lemma2_std_matches_monte_carlo_many_runs(noise_std, record_property):
 
 @pytest.mark.parametrize("module", [
     "lrmfrf.estimators.local", "lrmfrf.estimators.spectral", "lrmfrf.signals",
+    "lrmfrf.estimators._base", "lrmfrf.local_models",
 ])
 def test_docstring_examples_run(module):
     import importlib
@@ -627,3 +696,275 @@ def test_docstring_examples_run(module):
                              optionflags=doctest.NORMALIZE_WHITESPACE)
     assert result.attempted > 0
     assert result.failed == 0
+
+
+# --- scale invariance: normalisation by powers of two ------------------------------
+
+SCALES = [2.0**k for k in (-530, -300, -160, 160, 300, 530)] + [
+    10.0**k for k in (-160, -100, -40, 40, 100, 160)
+]
+SCALE_PARAMS = {
+    LRMBeyondNyquist: {"den_degree": 2},
+    LPMBeyondNyquist: {},
+    SpectralAnalysis: {},
+}
+
+
+@pytest.fixture(scope="module")
+def scale_references(data):
+    u, y = data
+    return {
+        Est: Est(**params).fit(u, y, 3) for Est, params in SCALE_PARAMS.items()
+    }
+
+
+@pytest.mark.parametrize("Est", ESTIMATORS)
+@pytest.mark.parametrize("u_scale", SCALES[::3])
+@pytest.mark.parametrize("y_scale", SCALES[1::3])
+def test_any_finite_scale_gives_the_same_frf(Est, u_scale, y_scale, data,
+                                             scale_references):
+    """frf_ and frf_std_ scale as y_scale/u_scale and valid_ is unchanged, from
+    1e-160 (2**-530) to 1e160 (2**530). Tolerances: 1e-12 on frf_ (the data
+    scaled by 10**k carry one rounding, the fit loses a few digits at most);
+    1e-8 on frf_std_, whose residual subtracts nearly equal sums, so the
+    data's rounding can show at about 1e-11 relative."""
+    u, y = data
+    ref = scale_references[Est]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no overflow, no identifiability warning
+        est = Est(**SCALE_PARAMS[Est]).fit(u * u_scale, y * y_scale, 3)
+    ratio = y_scale / u_scale
+    np.testing.assert_array_equal(est.valid_, ref.valid_)
+    assert ref.valid_.sum() > 0.9 * ref.valid_.size
+    v = ref.valid_
+    np.testing.assert_allclose(est.frf_[v] / ratio, ref.frf_[v], rtol=1e-12)
+    assert np.all(np.isfinite(est.frf_std_[v]))
+    np.testing.assert_allclose(est.frf_std_[v] / ratio, ref.frf_std_[v], rtol=1e-8)
+
+
+@pytest.mark.parametrize("Est", [LRMBeyondNyquist, LPMBeyondNyquist])
+@pytest.mark.parametrize("scale", [1e-160, 1e-100, 1e160])
+def test_scale_carrying_attributes_of_local_models(Est, scale, data,
+                                                   scale_references):
+    """transient_ scales as y, local_fit_ values as y/u (system), y
+    (transient) and y^2 (residuals); predict and score are invariant. The
+    squares at 1e+-160 (noise variance ~1e-324 or ~1e325) are beyond the
+    float range, so they are checked at 1e-100. Tolerances as above."""
+    u, y = data
+    ref = scale_references[Est]
+    est = Est(**SCALE_PARAMS[Est]).fit(u * scale, y * scale, 3)
+    np.testing.assert_allclose(est.transient_ / scale, ref.transient_, rtol=1e-9)
+    fit, ref_fit = est.local_fit_, ref.local_fit_
+    np.testing.assert_allclose(fit.system, ref_fit.system, rtol=1e-12)
+    np.testing.assert_allclose(fit.transient / scale, ref_fit.transient, rtol=1e-9)
+    n_sys = est.layout_.n_system
+    np.testing.assert_allclose(fit.theta[:, :n_sys], ref_fit.theta[:, :n_sys],
+                               rtol=1e-9, atol=1e-12 * np.abs(ref_fit.theta).max())
+    if 1e-150 < scale < 1e150:
+        np.testing.assert_allclose(est.noise_variance_ / scale / scale,
+                                   ref.noise_variance_, rtol=1e-8)
+        np.testing.assert_allclose(fit.rss / scale / scale, ref_fit.rss, rtol=1e-8)
+    np.testing.assert_allclose(est.predict(u * scale) / scale, ref.predict(u),
+                               rtol=1e-9, atol=1e-12 * np.abs(y).max())
+    assert est.score(u * scale, y * scale) == pytest.approx(ref.score(u, y),
+                                                            rel=1e-12)
+
+
+@pytest.mark.filterwarnings("ignore:Sanathanan-Koerner used all")
+@pytest.mark.parametrize("scale", [2.0**-530, 2.0**-300, 2.0**530])
+def test_scale_invariance_with_refinement(scale, data):
+    """SK refinement on data scaled by 2**+-530 gives the unscaled result; the
+    cost histories scale as y^2 (checked at 2**-300: at 2**-530 the costs
+    are below the smallest float)."""
+    u, y = data
+    params = {"den_degree": 2, "sk_iterations": 5}
+    ref = LRMBeyondNyquist(**params).fit(u, y, 3)
+    est = LRMBeyondNyquist(**params).fit(u * scale, y * scale, 3)
+    np.testing.assert_array_equal(est.valid_, ref.valid_)
+    np.testing.assert_allclose(est.frf_, ref.frf_, rtol=1e-12)
+    np.testing.assert_allclose(est.frf_std_, ref.frf_std_, rtol=1e-9)
+    assert est.n_sk_iter_ == ref.n_sk_iter_
+    if scale == 2.0**-300:
+        np.testing.assert_allclose(est.cost_history_ / scale / scale, ref.cost_history_,
+                                   rtol=1e-9)
+
+
+@pytest.mark.parametrize("Est", ESTIMATORS)
+def test_ordinary_data_are_not_rescaled(Est, data):
+    """Normalisation is exact and skipped for ordinary data: the results are
+    bit for bit those of the kernels on the unscaled DFTs."""
+    from lrmfrf.local_models import (
+        dft,
+        fit_local_models,
+        one_sided_fast_grid,
+        power_of_two_exponent,
+    )
+
+    u, y = data
+    for x in (u, y, 1e-15 * u, 1e15 * y):  # within 2**+-64
+        assert power_of_two_exponent(x) == 0
+    assert power_of_two_exponent(2.0**100 * u) != 0
+    est = Est(**SCALE_PARAMS[Est]).fit(u, y, 3)
+    if Est is SpectralAnalysis:
+        again = SpectralAnalysis().fit(u * 2.0**80, y * 2.0**80, 3)
+        np.testing.assert_array_equal(est.frf_, again.frf_)
+        return
+    closed = fit_local_models(dft(u)[None], dft(y)[None], est.layout_)
+    np.testing.assert_array_equal(
+        est.frf_, one_sided_fast_grid(closed.system, u.size, 3, conj=True))
+    np.testing.assert_array_equal(est.local_fit_.theta, closed.theta)
+    np.testing.assert_array_equal(est.noise_variance_, closed.noise_var)
+
+
+# --- valid bins hold an estimate, never garbage -------------------------------------
+
+@pytest.mark.parametrize("kind", ["constant", "sine"])
+def test_spectral_analysis_unexcited_bins_are_invalid(kind):
+    """A constant input, or a sine on the segment grid (bin 10 of 200), has
+    power only at 2 or 3 segment bins (Hann leakage); elsewhere its power is
+    round-off, and H1 divided round-off by round-off (|G| up to 1.7e16). With
+    the relative threshold only the excited bins are valid and they hold the
+    true gain 2.5 (to 1e-6: Hann leakage of the zero-stuffed images)."""
+    n = np.arange(1200)
+    u = np.ones(1200) if kind == "constant" else np.sin(2 * np.pi * 0.05 * n)
+    sa = SpectralAnalysis().fit(u, 2.5 * u[::3], 3)
+    assert 1 <= sa.valid_.sum() <= 3
+    np.testing.assert_allclose(np.abs(sa.frf_[sa.valid_]), 2.5, rtol=1e-6)
+    assert np.all(np.isnan(sa.frf_[~sa.valid_]))
+
+
+@pytest.mark.parametrize("den_degree", [2, 7])
+def test_lrm_constant_output_gives_no_response(den_degree):
+    """A constant output shows no response: windows without the DC bin fit
+    G = 0 exactly (std 0, noise-free), the others an estimate within its
+    std. With den_degree=7 the denominator block of those windows has rank 1
+    and the triangular solve divided round-off by pivots of 1e-16..1e-97:
+    |G| reached 3e65 at valid bins (std 8e145). Bounds: |G| <= 3 std
+    (measured: at most 0.92 std), and std below the gain that would explain
+    the whole DC output by one input bin, F |Y_l(0)| / median |U_h|."""
+    u = multisine(1200, rng=0)
+    y = np.full(400, 2.0)
+    est = LRMBeyondNyquist(den_degree=den_degree).fit(u, y, 3)
+    G, std = np.abs(est.frf_), est.frf_std_
+    assert est.valid_.all()
+    assert np.all(G[std == 0] == 0)
+    assert (std == 0).sum() > 0.8 * G.size
+    assert np.all(G <= 3 * std)
+    explain_all = 3 * abs(y.sum()) / np.median(np.abs(np.fft.fft(u)))
+    assert std.max() < explain_all
+
+
+def test_spectral_analysis_std_of_zero_output_is_zero(data):
+    """Zero output: G = 0 and, without noise, a std of 0 (it was 0 * inf =
+    NaN at every valid bin)."""
+    u, _ = data
+    sa = SpectralAnalysis().fit(u, np.zeros(400), 3)
+    assert sa.valid_.all()
+    np.testing.assert_array_equal(sa.frf_, 0)
+    np.testing.assert_array_equal(sa.frf_std_, 0)
+
+
+def test_spectral_analysis_std_formula_unchanged(data):
+    """The std is now evaluated without dividing by the coherence; it equals
+    the coherence formula |G| sqrt((1 - coh) / (n coh)) to round-off (1e-9
+    relative: 1 - coh loses digits where the coherence is near 1)."""
+    u, y = data
+    sa = SpectralAnalysis().fit(u, y, 3)
+    coh = sa.coherence_
+    old = np.abs(sa.frf_) * np.sqrt((1 - coh) / (sa.n_segments_ * coh))
+    np.testing.assert_allclose(sa.frf_std_, old, rtol=1e-9)
+
+
+def test_spectral_analysis_single_segment_has_no_std(data):
+    """One segment: H1 has coherence 1 by construction, so there is no basis
+    for a std. frf_ and valid_ are kept, frf_std_ is NaN, with a warning."""
+    u, y = data
+    with pytest.warns(UserWarning, match="single segment.*frf_std_ has no basis"):
+        sa = SpectralAnalysis(segment_length=1200, overlap=0).fit(u, y, 3)
+    assert sa.n_segments_ == 1
+    assert sa.valid_.sum() > 500
+    assert np.all(np.isnan(sa.frf_std_))
+    assert np.all(np.isfinite(sa.frf_[sa.valid_]))
+
+
+# --- API: clear errors --------------------------------------------------------------
+
+def test_spectral_analysis_predict_without_valid_bin():
+    sa = SpectralAnalysis().fit(np.zeros(1200), np.zeros(400), 3)
+    assert not sa.valid_.any()
+    with pytest.raises(ValueError, match="no valid bin"):
+        sa.predict(multisine(1200, rng=0))
+
+
+@pytest.mark.parametrize("Est", ESTIMATORS)
+def test_column_vectors_are_refused(Est, data):
+    u, y = data
+    with pytest.raises(ValueError, match=r"shape \(1200, 1\): a column vector.*"
+                       r"1-D array \(u_h.ravel\(\)\).*transpose"):
+        Est().fit(u[:, None], y, 3)
+    with pytest.raises(ValueError, match=r"`y_l` has shape \(400, 1\)"):
+        Est().fit(u, y[:, None], 3)
+    with pytest.raises(ValueError, match="column vector"):
+        Est().fit(u[:, None].tolist(), y[:, None].tolist(), 3)
+    est = Est().fit(u, y, 3)
+    with pytest.raises(ValueError, match="column vector"):
+        est.predict(u[:, None])
+
+
+@pytest.mark.parametrize("Est", ESTIMATORS)
+def test_masked_arrays_are_refused(Est, data):
+    u, y = data
+    masked = np.ma.masked_array(u, mask=np.arange(u.size) == 5)
+    with pytest.raises(TypeError, match="`u_h` is a masked array.*cannot be "
+                       "honoured"):
+        Est().fit(masked, y, 3)
+    with pytest.raises(TypeError, match="masked array"):
+        Est().fit(u, np.ma.masked_array(y), 3)
+    with pytest.raises(TypeError, match=r"`u_h\[1\]` is a masked array"):
+        Est().fit([u, masked], [y, y], 3)
+
+
+@pytest.mark.parametrize("dtype", ["timedelta64[ms]", "datetime64[ms]"])
+def test_times_are_not_signal_values(dtype, data):
+    u, y = data
+    times = np.arange(1200).astype(dtype)
+    with pytest.raises(TypeError, match=r"`u_h` must hold signal values.*times "
+                       "or durations"):
+        LRMBeyondNyquist().fit(times, y, 3)
+
+
+@pytest.mark.parametrize("Est", ESTIMATORS)
+def test_predict_with_nan_names_the_nan(Est, data):
+    u, y = data
+    est = Est().fit(u, y, 3)
+    with pytest.raises(ValueError, match="non-finite.*before predicting"):
+        est.predict(np.where(np.arange(u.size) == 3, np.nan, u))
+    with pytest.raises(ValueError, match="`y_l` contains 1 non-finite.*before "
+                       "scoring"):
+        est.score(u, np.where(np.arange(y.size) == 3, np.nan, y))
+
+
+@settings(max_examples=20, deadline=None)
+@given(k_u=st.integers(-160, 160), k_y=st.integers(-160, 160),
+       base=st.sampled_from([2.0, 10.0]),
+       Est=st.sampled_from([LRMBeyondNyquist, LPMBeyondNyquist, SpectralAnalysis]))
+def test_scale_invariance_property(k_u, k_y, base, Est):
+    """Any pair of scales base**k (|k| <= 160, u and y independently): frf_
+    scales as y_scale/u_scale (1e-12 relative, as in the sweep above; for
+    base 2 and |k| > 33 the normalised records are the same up to a power
+    of two) and valid_ is unchanged. Ratios beyond 1e+-300 are skipped: the
+    FRF itself is then outside the float range."""
+    if abs(k_y - k_u) * np.log10(base) > 300:
+        return
+    rng = np.random.default_rng(7)
+    u = multisine(600, rng=rng)
+    y = lfilter([0.2, 0.1], [1.0, -0.5], u)[::3] + 1e-3 * rng.standard_normal(200)
+    params = {LRMBeyondNyquist: {"den_degree": 2, "half_window": 12},
+              LPMBeyondNyquist: {"half_window": 12}, SpectralAnalysis: {}}[Est]
+    ref = Est(**params).fit(u, y, 3)
+    u_scale, y_scale = base**k_u, base**k_y
+    est = Est(**params).fit(u * u_scale, y * y_scale, 3)
+    np.testing.assert_array_equal(est.valid_, ref.valid_)
+    v = ref.valid_
+    np.testing.assert_allclose(est.frf_[v] * (u_scale / y_scale), ref.frf_[v],
+                               rtol=1e-12)

@@ -119,7 +119,7 @@ def test_pure_noise_noise_variance_pools_all_experiments():
     for P in (1, 4):
         u = rng.standard_normal((P, N))
         y = sigma * rng.standard_normal((P, M))
-        est = LPMBeyondNyquist(half_window=12, degree=2).fit(u, y, F)
+        est = LPMBeyondNyquist(half_window=12, num_degree=2).fit(u, y, F)
         ratio = np.mean(est.noise_variance_) / (M * sigma**2)
         # The window estimates overlap; ~M/(2n+1) = 8 independent windows of
         # 2*dof real dof each give a relative SE below 1/sqrt(8 * 2 * dof) <= 6 %
@@ -201,7 +201,7 @@ def test_score_ranks_a_badly_wrong_model_lower():
     good = LRMBeyondNyquist(**SMALL).fit(u[:2], y[:2], F)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        bad = LPMBeyondNyquist(half_window=12, degree=0).fit(u[:2], y[:2], F)
+        bad = LPMBeyondNyquist(half_window=12, num_degree=0).fit(u[:2], y[:2], F)
     assert good.score(u[2:], y[2:]) > bad.score(u[2:], y[2:]) + 0.1
 
 

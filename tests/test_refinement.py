@@ -452,3 +452,60 @@ def test_sk_lowers_median_error_and_guarded_lm_never_blows_up():
         worst = max(worst, float(np.max(np.abs(full.frf_ - G)[keep] / bound)))
     assert np.median(med_sk) < np.median(med_closed)
     assert worst <= 1.0
+
+
+# ------------------------------------------------------------ public entry point
+
+
+def test_public_entry_has_the_estimators_options(stage_data, capsys):
+    """The estimator refines through the public refine_local_models (its
+    `verbose` option was missing, so estimators/local.py imported the private
+    kernel); warnings from a direct call point at the caller too."""
+    import lrmfrf.estimators.local as local
+
+    pytest.importorskip("tqdm")
+    assert not hasattr(local, "_refine") and not hasattr(local, "_emit_warnings")
+    d = stage_data
+    with pytest.warns(ConvergenceWarning, match="Increase `sk_iterations`") as record:
+        refine_local_models(d["U"], d["Y"], d["layout"], d["closed"],
+                            sk_iterations=1, verbose=True)
+    assert record[0].filename == __file__
+    assert "refinement" in capsys.readouterr().err
+
+
+def test_refinement_uses_the_package_chunk_bound(stage_data):
+    """One chunk-size constant (solvers.CHUNK_BYTES): the default chunk is
+    the QR solver's."""
+    from lrmfrf import refinement, solvers
+
+    assert not hasattr(refinement, "CHUNK_BYTES")
+    assert solvers.qr_chunk_size(stage_data["layout"]) == max(
+        1, solvers.CHUNK_BYTES // (16 * stage_data["layout"].n_equations
+                                   * stage_data["layout"].n_params))
+
+
+@pytest.mark.filterwarnings("ignore:Sanathanan-Koerner used all")
+@pytest.mark.parametrize("u_scale, y_scale", [(2.0**-600, 2.0**-300),
+                                              (2.0**500, 2.0**400)])
+def test_kernels_are_scale_invariant(stage_data, u_scale, y_scale):
+    """fit_local_models and refine_local_models on DFTs scaled far beyond the
+    ordinary range give the unscaled results times y/u (system), y
+    (transient), y^2 (costs). Power-of-two scales and a normalisation by
+    powers of two: equal to 1e-12 (rounding of the different paths only)."""
+    d = stage_data
+    ratio = y_scale / u_scale
+    U, Y = d["U"] * u_scale, d["Y"] * y_scale
+    closed = fit_local_models(U, Y, d["layout"])
+    np.testing.assert_array_equal(closed.well_posed, d["closed"].well_posed)
+    np.testing.assert_allclose(closed.system / ratio, d["closed"].system, rtol=1e-12)
+    np.testing.assert_allclose(closed.transient / y_scale, d["closed"].transient,
+                               rtol=1e-9)
+    kwargs = {"sk_iterations": 2}
+    ref = refine_local_models(d["U"], d["Y"], d["layout"], d["closed"], **kwargs)
+    out = refine_local_models(U, Y, d["layout"], closed, **kwargs)
+    np.testing.assert_allclose(out.local_fit.system / ratio, ref.local_fit.system,
+                               rtol=1e-12)
+    np.testing.assert_allclose(np.sqrt(out.local_fit.system_var) / ratio,
+                               np.sqrt(ref.local_fit.system_var), rtol=1e-9)
+    np.testing.assert_allclose(out.cost_history / y_scale / y_scale,
+                               ref.cost_history, rtol=1e-9)

@@ -214,8 +214,9 @@ def test_noise_std_and_seeding(stage):
 
 def test_rejects_non_state_space_and_continuous_and_mimo(stage):
     u = np.zeros(6)
-    with pytest.raises(TypeError, match="must be a control.StateSpace"):
-        simulate(control.ss2tf(stage.G_y4), u, 3)
+    with pytest.raises(TypeError, match="must be a control.StateSpace or "
+                       "TransferFunction"):
+        simulate(control.frd([1.0, 2.0], [0.1, 0.2]), u, 3)
     with pytest.raises(ValueError, match="must be discrete-time"):
         simulate(stage.plant_continuous[0, 0], u, 3)
     with pytest.raises(ValueError, match="must be SISO"):
@@ -227,7 +228,7 @@ def test_rejects_non_state_space_and_continuous_and_mimo(stage):
 def test_rejects_mismatched_sample_time(stage):
     with pytest.raises(ValueError, match="does not match system.dt"):
         simulate(stage.G_y4, np.zeros(6), 3, sample_time=1.5e-3)
-    with pytest.raises(ValueError, match="sample_time must be a finite number > 0"):
+    with pytest.raises(ValueError, match="`sample_time` must be a positive, finite"):
         simulate(stage.G_y4, np.zeros(6), 3, sample_time=-1.0)
 
 
@@ -282,12 +283,46 @@ def test_rejects_bad_states_and_lengths(stage):
         simulate(stage.G_y4, np.zeros(6), 3, x0=np.full(14, np.nan))
     with pytest.raises(ValueError, match=r"x_final must have shape \(14,\)"):
         transient_frf(stage.G_y4, 6, np.zeros(14), np.zeros(2))
-    with pytest.raises(ValueError, match="n_samples must be >= 1"):
+    with pytest.raises(ValueError, match="`n_samples` must be an integer >= 1"):
         true_frf(stage.G_y4, 0)
-    with pytest.raises(TypeError, match="n_samples must be an int"):
-        true_frf(stage.G_y4, 10.0)
-    with pytest.raises(ValueError, match="sample_time must be a finite number > 0"):
+    with pytest.raises(TypeError, match="`n_samples` must be an integer >= 1"):
+        true_frf(stage.G_y4, 10.5)
+    with pytest.raises(ValueError, match="`sample_time` must be a positive, finite"):
         frequency_grid(10, 0.0)
+
+
+def test_parameter_checks_are_the_package_ones(stage):
+    """One rule per kind of value across the package (issue 12, item 9): a
+    whole float is a valid count, as for every other integer parameter."""
+    np.testing.assert_array_equal(true_frf(stage.G_y4, 10.0),
+                                  true_frf(stage.G_y4, 10))
+    np.testing.assert_array_equal(frequency_grid(10.0, 1e-3),
+                                  frequency_grid(10, 1e-3))
+
+
+def test_simulate_accepts_a_transfer_function():
+    """As `diagnose` does: a discrete TransferFunction is converted with
+    control.ss. A 2nd-order tf against scipy's lfilter of the same
+    polynomials (1e-12 relative: both are exact recursions, rounding only);
+    true_frf against the polynomial ratio; transient_frf closes the DFT
+    identity Y = G U + T of the converted realisation."""
+    from scipy.signal import lfilter
+
+    b, a = [0.2, 0.1, 0.0], [1.0, -1.2, 0.5]
+    tf = control.tf(b, a, 1e-3)
+    u = np.random.default_rng(4).standard_normal(600)
+    result = simulate(tf, u, 3, noise_std=0.0)
+    expected = lfilter(b, a, u)
+    np.testing.assert_allclose(result.y_h, expected, rtol=1e-12,
+                               atol=1e-12 * np.abs(expected).max())
+    np.testing.assert_array_equal(result.y_l, result.y_h[::3])
+    z = np.exp(2j * np.pi * np.arange(301) / 600)
+    np.testing.assert_allclose(true_frf(tf, 600), np.polyval(b, z) / np.polyval(a, z),
+                               rtol=1e-12)
+    G = true_frf(tf, 600, one_sided=False)
+    T = transient_frf(tf, 600, result.x0, result.x_final, one_sided=False)
+    Y = np.fft.fft(result.y_h)
+    np.testing.assert_allclose(Y, G * np.fft.fft(u) + T, atol=1e-10 * np.abs(Y).max())
 
 
 def test_inputs_are_never_modified(stage):

@@ -10,13 +10,25 @@ from sklearn.base import BaseEstimator
 from sklearn.exceptions import NotFittedError
 
 from .._validation import check_record_stack, check_records
-from ..local_models import dft
+from ..local_models import dft, power_of_two_exponent, scale_by_power_of_two
 
 __all__ = ["FRFEstimatorMixin"]
 
 #: An input DFT bin whose magnitude is below this fraction of the record's
 #: largest bin counts as not excited in ``predict`` (round-off of a zero).
 _UNEXCITED_TOL = 1e-12
+
+
+def _normalise_in_place(x: np.ndarray) -> int:
+    """Scale a validated (already copied) float array by a power of two in place.
+
+    Returns the exponent ``e`` of :func:`lrmfrf.local_models.power_of_two_exponent`
+    (``x`` becomes ``x * 2**-e``); 0, and ``x`` untouched, for ordinary data.
+    """
+    exponent = power_of_two_exponent(x)
+    if exponent:
+        np.ldexp(x, -exponent, out=x)
+    return exponent
 
 
 class FRFEstimatorMixin:
@@ -66,15 +78,20 @@ class FRFEstimatorMixin:
         self._check_fitted()
         F = self.downsampling_factor_
         single = np.ndim(u_h) == 1
-        u = check_record_stack(u_h, "u_h")
+        u = check_record_stack(u_h, "u_h", purpose="predicting")
         if u.shape[1] != self.n_samples_:
             raise ValueError(
                 f"predict needs an input of the training length N="
                 f"{self.n_samples_}. Got {u.shape[1]} samples. The FRF is only "
                 "known on the training DFT grid: pass records of that length."
             )
+        # G U with both normalised by powers of two (exact), scaled back last
+        u_exponent = _normalise_in_place(u)
         U = dft(u)
+        del u
         G = self._fast_frf(self.n_samples_)
+        g_exponent = power_of_two_exponent(np.nan_to_num(np.abs(G)))
+        G = scale_by_power_of_two(G, -g_exponent)
         unexcited = np.abs(U) <= _UNEXCITED_TOL * np.abs(U).max(axis=1, keepdims=True)
         with np.errstate(invalid="ignore"):
             Yh = np.where(unexcited, 0.0, G * U)
@@ -87,6 +104,7 @@ class FRFEstimatorMixin:
                 "bins."
             )
         y = np.fft.ifft(Yh, axis=1).real[:, ::F]
+        y = scale_by_power_of_two(y, u_exponent + g_exponent)
         return y[0] if single else y
 
     def score(self, u_h, y_l) -> float:
@@ -108,32 +126,68 @@ class FRFEstimatorMixin:
             1 for a perfect prediction; can be negative.
         """
         self._check_fitted()
-        u, y, _ = check_records(u_h, y_l, self.downsampling_factor_)
+        u, y, _ = check_records(
+            u_h, y_l, self.downsampling_factor_, purpose="scoring"
+        )
         prediction = self.predict(u)
+        # R^2 is a ratio: normalise both by the same power of two (exact)
+        exponent = power_of_two_exponent(y)
+        y = scale_by_power_of_two(y, -exponent)
+        prediction = scale_by_power_of_two(prediction, -exponent)
         ss_res = np.sum((y - prediction) ** 2)
         ss_tot = np.sum((y - y.mean()) ** 2)
         if ss_tot == 0.0:
             return 0.0 if ss_res > 0 else 1.0
         return float(1.0 - ss_res / ss_tot)
 
-    def to_frd(self):
+    def to_frd(self, *, return_std: bool = False):
         """The valid bins of the FRF as a ``control.FrequencyResponseData``.
+
+        Parameters
+        ----------
+        return_std : bool, default=False
+            Also return the standard deviation of the FRF on the FRD's
+            frequencies (scikit-learn's ``return_std`` pattern, as in
+            ``GaussianProcessRegressor.predict``).
 
         Returns
         -------
-        control.FrequencyResponseData
+        frd : control.FrequencyResponseData
             ``omega`` in rad/s, ``dt`` the fast sample time in seconds. Bins
             with ``valid_ == False`` are left out.
+        std : ndarray of shape (n_valid,)
+            Only with ``return_std=True``: ``frf_std_`` at the same bins, in
+            the order of ``frd.omega`` (``sqrt(E|G_hat - G|^2)``, units of
+            the FRF; NaN where the estimator has no std, e.g. spectral
+            analysis of a single segment).
+
+        Examples
+        --------
+        >>> from scipy.signal import lfilter
+        >>> from lrmfrf import LRMBeyondNyquist
+        >>> from lrmfrf.signals import multisine
+        >>> u = multisine(1200, rng=0)
+        >>> y = lfilter([0.2, 0.1], [1.0, -0.5], u)[::3]
+        >>> frd, std = LRMBeyondNyquist(den_degree=2).fit(u, y, F=3).to_frd(
+        ...     return_std=True)
+        >>> frd.omega.shape == std.shape
+        True
         """
         import control
 
+        from .._validation import check_bool
+
+        return_std = check_bool(return_std, "return_std")
         self._check_fitted()
         keep = self.valid_
-        return control.FrequencyResponseData(
+        frd = control.FrequencyResponseData(
             self.frf_[keep],
             2 * np.pi * self.frequencies_[keep],
             dt=self.sample_time_,
         )
+        if return_std:
+            return frd, self.frf_std_[keep].copy()
+        return frd
 
 
 class _BaseFRFEstimator(FRFEstimatorMixin, BaseEstimator):

@@ -22,10 +22,16 @@ from .._validation import (
     check_sample_time,
 )
 from ..exceptions import IdentifiabilityWarning
-from ..local_models import dft, fit_local_models, one_sided_fast_grid
-from ..refinement import _emit_warnings, _refine
+from ..local_models import (
+    dft,
+    fit_local_models,
+    one_sided_fast_grid,
+    rescale_local_fit,
+    scale_by_power_of_two,
+)
+from ..refinement import refine_local_models
 from ..windows import LocalModelLayout
-from ._base import _BaseFRFEstimator
+from ._base import _BaseFRFEstimator, _normalise_in_place
 
 __all__ = ["LRMBeyondNyquist", "LPMBeyondNyquist"]
 
@@ -38,16 +44,17 @@ _HALF_WINDOW = partial(check_nonnegative_int, minimum=1)
 class _LocalModelEstimator(_BaseFRFEstimator):
     """Common ``fit`` of the local-model estimators (LRM, LPM)."""
 
-    #: How the estimator names ``half_window``, ``num_degree``,
-    #: ``transient_degree`` and ``den_degree`` (None: not a parameter).
-    _degree_names: dict = {}
-
-    def _local_degrees(self, params: dict) -> dict:  # pragma: no cover - abstract
-        """The four local-model settings from the checked parameters."""
+    def _local_degrees(self, params: dict) -> tuple[dict, dict]:  # pragma: no cover
+        """The four local-model settings from the checked parameters, and how
+        the estimator names them in messages (None: not a parameter)."""
         raise NotImplementedError
 
-    def _refine(self, U, Y, layout, local_fit, params: dict):
-        """Hook for iterative refinement; the closed form by default."""
+    def _refine(self, U, Y, layout, local_fit, params: dict, y_exponent: int):
+        """Hook for iterative refinement; the closed form by default.
+
+        ``U``, ``Y`` and ``local_fit`` are normalised (see ``fit``); costs
+        stored on the estimator are scaled back by ``2**(2*y_exponent)``.
+        """
         return local_fit
 
     def fit(self, u_h, y_l, F, *, sample_time: float = 1.0):
@@ -62,7 +69,10 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         F : int
             Downsampling factor, ``N = F M``.
         sample_time : float, default=1.0
-            Fast sample time in seconds (sets ``frequencies_`` in Hz).
+            Fast sample time in seconds (sets ``frequencies_`` in Hz). With
+            the default 1.0, time is counted in samples and ``frequencies_``
+            and ``slow_frequencies_`` are in cycles per (fast) sample, from 0
+            to 0.5.
 
         Returns
         -------
@@ -83,25 +93,48 @@ class _LocalModelEstimator(_BaseFRFEstimator):
             Once, when some local problems are rank-deficient (an input that
             does not excite every aliased band): those bins are NaN with
             ``valid_ == False``.
+
+        Notes
+        -----
+        The FRF is a ratio, so the result does not depend on the units of
+        ``u_h`` and ``y_l``: records whose largest magnitude is outside
+        ``2**-64 .. 2**64`` (about 5e-20 .. 1.8e19) are divided by a power of
+        two before the DFT, which is exact, and the results are multiplied
+        back (``frf_`` and ``frf_std_`` by the output-to-input factor,
+        ``transient_`` by the output factor, ``noise_variance_`` and costs by
+        its square, ``local_fit_`` likewise). Any finite scale thus gives the
+        same FRF; ordinary records are not touched (bit-identical results).
+        A variance whose value exceeds the float range (e.g. the noise
+        variance of an output of 1e160) is inf.
         """
         params = self._checked_params()
         u, y, F = check_records(u_h, y_l, F)
         sample_time = check_sample_time(sample_time)
         P, N = u.shape
         M = y.shape[1]
+        local_degrees, names = self._local_degrees(params)
         degrees = check_local_degrees(
-            **self._local_degrees(params), F=F, n_slow=M, n_experiments=P,
-            parameter_names=self._degree_names,
+            **local_degrees, F=F, n_slow=M, n_experiments=P,
+            parameter_names=names,
         )
         layout = LocalModelLayout(F=F, n_experiments=P, **degrees)
+        # The FRF is a ratio: fit on records normalised by powers of two
+        # (exact; none for ordinary data) and undo it on the results.
+        u_exponent = _normalise_in_place(u)
+        y_exponent = _normalise_in_place(y)
         U = dft(u)
         Y = dft(y)
+        del u, y
         local_fit = fit_local_models(U, Y, layout)
-        local_fit = self._refine(U, Y, layout, local_fit, params)
-        self._set_fitted(local_fit, layout, N, M, F, P, sample_time)
+        local_fit = self._refine(U, Y, layout, local_fit, params, y_exponent)
+        self._set_fitted(
+            local_fit, layout, N, M, F, P, sample_time, u_exponent, y_exponent
+        )
         return self
 
-    def _set_fitted(self, local_fit, layout, N, M, F, P, sample_time) -> None:
+    def _set_fitted(
+        self, local_fit, layout, N, M, F, P, sample_time, u_exponent, y_exponent
+    ) -> None:
         valid = one_sided_fast_grid(
             np.repeat(local_fit.well_posed[:, None], F, axis=1), N, F, conj=False
         )
@@ -134,10 +167,13 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         self.dof_ = layout.dof
         self.layout_ = layout
         self.frequencies_ = np.arange(N // 2 + 1) / (N * sample_time)
-        self.frf_ = one_sided_fast_grid(local_fit.system, N, F, conj=True)
-        self.frf_std_ = np.sqrt(
-            one_sided_fast_grid(local_fit.system_var, N, F, conj=False)
-        )
+        system_exponent = y_exponent - u_exponent
+        frf = one_sided_fast_grid(local_fit.system, N, F, conj=True)
+        self.frf_ = scale_by_power_of_two(frf, system_exponent)
+        # std from the normalised variance: its square may leave the float range
+        std = np.sqrt(one_sided_fast_grid(local_fit.system_var, N, F, conj=False))
+        self.frf_std_ = scale_by_power_of_two(std, system_exponent)
+        local_fit = rescale_local_fit(local_fit, u_exponent, y_exponent)
         self.valid_ = valid
         self.slow_frequencies_ = local_fit.slow_bins / (N * sample_time)
         self.noise_variance_ = local_fit.noise_var
@@ -199,7 +235,8 @@ class LRMBeyondNyquist(_LocalModelEstimator):
     Attributes
     ----------
     frequencies_ : ndarray of shape (N//2+1,)
-        Fast DFT grid ``k / (N T_s)`` in Hz, ``k = 0..N//2``.
+        Fast DFT grid ``k / (N T_s)`` in Hz, ``k = 0..N//2``; in cycles per
+        sample (``k / N``) when ``fit`` got no ``sample_time`` (default 1.0).
     frf_ : ndarray of shape (N//2+1,), complex
         Estimated FRF ``G(k)`` from ``u_h`` to ``y_h`` (units of ``y_l`` per
         unit of ``u_h``); NaN where ``valid_`` is False.
@@ -319,49 +356,71 @@ class LRMBeyondNyquist(_LocalModelEstimator):
         self.jump = jump
         self.verbose = verbose
 
-    def _local_degrees(self, params: dict) -> dict:
-        return {
+    def _local_degrees(self, params: dict) -> tuple[dict, dict]:
+        degrees = {
             "half_window": params["half_window"],
             "num_degree": params["num_degree"],
             "transient_degree": params["transient_degree"],
             "den_degree": params["den_degree"],
         }
+        return degrees, {}
 
-    def _refine(self, U, Y, layout, local_fit, params: dict):
+    def _refine(self, U, Y, layout, local_fit, params: dict, y_exponent: int):
         sk, lm = params["sk_iterations"], params["lm_iterations"]
         self.n_sk_iter_ = self.n_lm_iter_ = self.n_guarded_ = 0
         self.cost_history_ = self.sk_cost_history_ = None
         if not (sk or lm):
             return local_fit
-        result = _refine(
+        result = refine_local_models(  # warns at the caller of fit
             U, Y, layout, local_fit, sk_iterations=sk, lm_iterations=lm,
             tol=params["tol"], guard=params["guard"], jump=params["jump"],
             keep_best=True, chunk_size=None, verbose=params["verbose"],
         )
-        _emit_warnings(result, stacklevel=3)  # -> the caller of fit
-        self.cost_history_ = result.cost_history
-        self.sk_cost_history_ = result.sk_cost_history
+        self.cost_history_ = scale_by_power_of_two(
+            result.cost_history, 2 * y_exponent
+        )
+        self.sk_cost_history_ = scale_by_power_of_two(
+            result.sk_cost_history, 2 * y_exponent
+        )
         self.n_sk_iter_ = result.sk_iterations
         self.n_lm_iter_ = result.lm_iterations
         self.n_guarded_ = result.n_guarded
         return result.local_fit
 
 
+#: Default of a deprecated parameter: "not passed" (scikit-learn's pattern).
+_DEPRECATED = "deprecated"
+
+
+def _check_deprecated_degree(value, name: str):
+    """LPM's old ``degree``: the sentinel, or a degree checked as ``num_degree``."""
+    if isinstance(value, str) and value == _DEPRECATED:
+        return None
+    return check_nonnegative_int(value, name)
+
+
 class LPMBeyondNyquist(_LocalModelEstimator):
     """Local polynomial modelling beyond the Nyquist frequency.
 
     The same computation as :class:`LRMBeyondNyquist` with ``den_degree=0``,
-    ``num_degree=degree`` and ``transient_degree=transient_degree or degree``
-    (van Haren et al., 2023; ``F = 1`` is the LPM of Pintelon et al.).
+    ``num_degree=num_degree`` and ``transient_degree=transient_degree or
+    num_degree`` (van Haren et al., 2023; ``F = 1`` is the LPM of Pintelon et
+    al.).
 
     Parameters
     ----------
     half_window : int, default=18
         ``n``: each local window holds ``2n+1`` slow bins.
-    degree : int, default=2
-        Degree of the local system polynomials.
+    num_degree : int, default=2
+        Degree of the local system polynomials (``R_g``). The same name as in
+        :class:`LRMBeyondNyquist`, of which LPM is the case ``den_degree=0``:
+        the numerator is the whole local model.
     transient_degree : int or None, default=None
-        Degree of the transient polynomial; ``None`` uses ``degree``.
+        Degree of the transient polynomial; ``None`` uses ``num_degree``.
+    degree : int, optional
+        Deprecated alias of ``num_degree`` (renamed in 0.2.0, removed in
+        0.3.0): passing it sets ``num_degree`` with a ``FutureWarning`` in
+        ``fit``.
 
     Attributes
     ----------
@@ -386,36 +445,57 @@ class LPMBeyondNyquist(_LocalModelEstimator):
     >>> from lrmfrf.signals import multisine
     >>> u = multisine(1200, rng=0)
     >>> y = lfilter([0.2, 0.1], [1.0, -0.5], u)[::3]
-    >>> est = LPMBeyondNyquist(half_window=18, degree=2).fit(u, y, F=3)
+    >>> est = LPMBeyondNyquist(half_window=18, num_degree=2).fit(u, y, F=3)
     >>> est.frf_.shape, est.n_params_, est.dof_
     ((601,), 12, 25)
     """
 
     _parameter_checks = {
         "half_window": _HALF_WINDOW,
-        "degree": check_nonnegative_int,
+        "num_degree": check_nonnegative_int,
         "transient_degree": check_nonnegative_int_or_none,
+        "degree": _check_deprecated_degree,
     }
-    _degree_names = {"num_degree": "degree", "den_degree": None}
-
     def __init__(
         self,
         *,
         half_window: int = 18,
-        degree: int = 2,
+        num_degree: int = 2,
         transient_degree: int | None = None,
+        degree="deprecated",
     ):
         self.half_window = half_window
-        self.degree = degree
+        self.num_degree = num_degree
         self.transient_degree = transient_degree
+        self.degree = degree
 
-    def _local_degrees(self, params: dict) -> dict:
+    def _local_degrees(self, params: dict) -> tuple[dict, dict]:
+        num_degree = params["num_degree"]
+        names = {"den_degree": None}
+        if params["degree"] is not None:
+            default = type(self)().num_degree
+            if num_degree != default and num_degree != params["degree"]:
+                raise ValueError(
+                    f"`degree` is the deprecated name of `num_degree`; got both, "
+                    f"degree={params['degree']} and num_degree={num_degree}. "
+                    "Pass num_degree only."
+                )
+            warnings.warn(
+                "`degree` was renamed `num_degree` in lrmfrf 0.2.0 (the name "
+                "LRMBeyondNyquist uses) and will be removed in 0.3.0. Pass "
+                f"num_degree={params['degree']} instead.",
+                FutureWarning,
+                stacklevel=3,  # -> the caller of fit
+            )
+            num_degree = params["degree"]
+            names["num_degree"] = "degree"
         transient = params["transient_degree"]
         if transient is None:
-            transient = params["degree"]
-        return {
+            transient = num_degree
+        degrees = {
             "half_window": params["half_window"],
-            "num_degree": params["degree"],
+            "num_degree": num_degree,
             "transient_degree": transient,
             "den_degree": 0,
         }
+        return degrees, names

@@ -2,15 +2,22 @@
 
 from __future__ import annotations
 
+import warnings
 from functools import partial
 
 import numpy as np
 from scipy.signal import get_window
 
 from .._validation import check_nonnegative_int, check_records, check_sample_time
-from ._base import _BaseFRFEstimator
+from ..local_models import scale_by_power_of_two
+from ._base import _BaseFRFEstimator, _normalise_in_place
 
 __all__ = ["SpectralAnalysis", "zero_stuff"]
+
+#: A segment-grid bin whose averaged input power is below this fraction of the
+#: average over all bins counts as not excited (round-off or window leakage of
+#: a zero), as :data:`lrmfrf.local_models.EXCITATION_TOL` for the local models.
+EXCITATION_TOL = 1e-12
 
 
 def zero_stuff(y_l: np.ndarray, F: int) -> np.ndarray:
@@ -69,7 +76,8 @@ class SpectralAnalysis(_BaseFRFEstimator):
     ----------
     frequencies_ : ndarray of shape (L//2+1,)
         Segment grid ``p / (L T_s)`` in Hz (coarser than the fast DFT grid by
-        ``N/L``).
+        ``N/L``); in cycles per sample (``p / L``) when ``fit`` got no
+        ``sample_time`` (default 1.0).
     frf_ : ndarray of shape (L//2+1,), complex
         H1 estimate (units of ``y_l`` per unit of ``u_h``); NaN where the input
         has no energy.
@@ -78,12 +86,20 @@ class SpectralAnalysis(_BaseFRFEstimator):
         from the coherence: ``|G| sqrt((1 - coh) / (n_avg coh))`` (Bendat and
         Piersol's random error, whose magnitude and phase parts each carry
         half of it), ignoring the correlation between overlapping segments.
-        It measures noise only, not the aliasing bias above the slow Nyquist
-        frequency.
+        It is evaluated as ``sqrt((S_yy - |S_yu|^2 / S_uu) / (n_avg S_uu))``,
+        the same quantity, which is also defined where the output is zero (a
+        std of 0). It measures noise only, not the aliasing bias above the slow
+        Nyquist frequency. With a single segment (``n_segments_ == 1``) the
+        coherence is 1 by construction and says nothing about the noise:
+        ``frf_std_`` is then NaN everywhere (with a warning), while ``frf_``
+        and ``valid_`` are as usual.
     coherence_ : ndarray of shape (L//2+1,)
         Magnitude-squared coherence of ``u_h`` and the zero-stuffed output.
     valid_ : ndarray of shape (L//2+1,), bool
-        False where the input has no energy (``frf_`` is NaN).
+        False where the input has no energy: its averaged power is below
+        ``1e-12`` of the average over all bins (round-off or window leakage of
+        a zero; e.g. all bins but the first two for a constant input).
+        ``frf_`` is NaN there.
     n_segments_ : int
         Segments averaged (over all experiments).
     n_samples_, n_slow_, n_experiments_, downsampling_factor_ : int
@@ -93,6 +109,8 @@ class SpectralAnalysis(_BaseFRFEstimator):
 
     Notes
     -----
+    The records are normalised by powers of two as in
+    :meth:`LRMBeyondNyquist.fit` (any finite scale gives the same FRF).
     Zero stuffing assumes ``Y_h(k + iM) = F Y_l(k)``: above the slow Nyquist
     frequency this estimate is aliased and biased even without noise.
     ``predict`` interpolates ``frf_`` linearly onto the fast DFT grid.
@@ -145,12 +163,19 @@ class SpectralAnalysis(_BaseFRFEstimator):
         F : int
             Downsampling factor, ``N = F M``.
         sample_time : float, default=1.0
-            Fast sample time in seconds.
+            Fast sample time in seconds. With the default 1.0, time is counted
+            in samples and ``frequencies_`` are in cycles per (fast) sample.
 
         Returns
         -------
         self
             The fitted estimator.
+
+        Warns
+        -----
+        UserWarning
+            With one segment in all (``segment_length`` close to the record
+            length): ``frf_std_`` is NaN.
         """
         L, overlap = self._check_params()
         u, y, F = check_records(u_h, y_l, F)
@@ -164,6 +189,10 @@ class SpectralAnalysis(_BaseFRFEstimator):
         step = L - overlap
         starts = np.arange(0, N - L + 1, step)
         taper = get_window(self.window, L)
+        # The FRF is a ratio: normalise by powers of two (exact; none for
+        # ordinary data) and undo it on frf_ and frf_std_.
+        u_exponent = _normalise_in_place(u)
+        y_exponent = _normalise_in_place(y)
         y_fast = zero_stuff(y, F)
         idx = starts[:, None] + np.arange(L)
         Useg = np.fft.rfft(u[:, idx] * taper, axis=-1)  # (P, S, L//2+1)
@@ -171,12 +200,25 @@ class SpectralAnalysis(_BaseFRFEstimator):
         Suu = np.sum(np.abs(Useg) ** 2, axis=(0, 1))
         Syy = np.sum(np.abs(Yseg) ** 2, axis=(0, 1))
         Syu = np.sum(Yseg * np.conj(Useg), axis=(0, 1))
-        valid = Suu > 0
+        valid = Suu > EXCITATION_TOL * Suu.mean()
         n_avg = P * starts.size
         with np.errstate(invalid="ignore", divide="ignore"):
             frf = np.where(valid, Syu / Suu, np.nan)
             coherence = np.where(valid & (Syy > 0), np.abs(Syu) ** 2 / (Suu * Syy), 0)
-            std = np.abs(frf) * np.sqrt((1 - coherence) / (n_avg * coherence))
+            # |G|^2 (1 - coh) / (n coh) without dividing by coh (or S_yy)
+            residual_power = np.maximum(Syy - np.abs(Syu) ** 2 / Suu, 0.0)
+            std = np.sqrt(residual_power / (n_avg * Suu))
+        if n_avg == 1:
+            warnings.warn(
+                f"SpectralAnalysis averaged a single segment (segment_length={L}, "
+                f"N={N}): its coherence is 1 by construction, so frf_std_ has no "
+                "basis and is NaN. Use segments shorter than half the record "
+                "(e.g. segment_length=N//8, overlap=segment_length//2) for a std.",
+                UserWarning,
+                stacklevel=2,
+            )
+            std = np.full_like(std, np.nan)
+        system_exponent = y_exponent - u_exponent
         self.n_samples_ = N
         self.n_slow_ = N // F
         self.n_experiments_ = P
@@ -184,8 +226,10 @@ class SpectralAnalysis(_BaseFRFEstimator):
         self.sample_time_ = sample_time
         self.n_segments_ = n_avg
         self.frequencies_ = np.arange(L // 2 + 1) / (L * sample_time)
-        self.frf_ = frf
-        self.frf_std_ = np.where(valid, std, np.nan)
+        self.frf_ = scale_by_power_of_two(frf, system_exponent)
+        self.frf_std_ = scale_by_power_of_two(
+            np.where(valid, std, np.nan), system_exponent
+        )
         self.coherence_ = coherence
         self.valid_ = valid
         return self
@@ -194,6 +238,13 @@ class SpectralAnalysis(_BaseFRFEstimator):
         """Linear interpolation of the segment-grid FRF onto the fast grid."""
         f_fast = np.arange(n_samples // 2 + 1) / (n_samples * self.sample_time_)
         keep = self.valid_
+        if not keep.any():
+            raise ValueError(
+                "The spectral-analysis FRF has no valid bin (`valid_` is False "
+                "everywhere: the training input had no energy), so there is "
+                "nothing to predict with. Refit with an input that excites the "
+                "band of interest, e.g. lrmfrf.signals.multisine."
+            )
         half = np.interp(f_fast, self.frequencies_[keep], self.frf_[keep].real) + 1j * (
             np.interp(f_fast, self.frequencies_[keep], self.frf_[keep].imag)
         )
