@@ -13,11 +13,13 @@ from __future__ import annotations
 import json
 import math
 import warnings
+from pathlib import Path
 
 import control
 import numpy as np
 import pytest
 
+import lrmfrf
 from lrmfrf import LRMBeyondNyquist
 from lrmfrf.discrepancy import (
     Effect,
@@ -503,8 +505,32 @@ def test_plant_of_wrong_type(stage, small_data):
 
 
 def test_unstable_closed_loop(stage, small_data):
-    with pytest.raises(ValueError, match="closed loop .* is unstable"):
+    with pytest.raises(ValueError, match="closed loop of `plant` and `controller` "
+                       "is unstable"):
         _call(stage, *small_data, controller=stage.controller * 20)
+
+
+def test_candidate_that_destabilises_the_loop_is_skipped(stage):
+    """Bug (issue 12, item 2): the shipped example data with the shipped model.
+
+    The data are the closed loop to the `z` output, the model is the `y4`
+    plant, so the search tries large changes; some candidates make the
+    closed loop unstable. They must be skipped and counted, not abort the run
+    with an error that blames the user's (stable) model.
+    """
+    data = np.load(Path(lrmfrf.__file__).parent / "data" / "wafer_stage_example.npz")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        report = diagnose(stage.plant[0, 0], data["u"], data["y"], 3,
+                          sample_time=TS, controller=stage.controller,
+                          random_state=0)
+    assert report.skipped_candidates, report.summary()
+    assert "skipped" in report.summary()
+    assert report.to_dict()["skipped_candidates"] == report.skipped_candidates
+    # every model the report holds closes a stable loop with the controller
+    loop = control.feedback(report.updated_plant, stage.controller)
+    assert np.max(np.abs(np.linalg.eigvals(loop.A))) < 1.0
+    assert report.gap_after <= report.gap_before
 
 
 def test_continuous_controller(stage, small_data):

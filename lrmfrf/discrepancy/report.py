@@ -110,6 +110,11 @@ class DiagnosisReport:
         Null behaviour of the estimator at the original and the updated model.
     settings : dict
         ``alpha``, ``ic_margin``, ``max_effects`` and calibration settings.
+    skipped_candidates : list of str
+        Labels of the candidate models (single effects or joint refits) the
+        search skipped because their closed loop with the controller is
+        unstable, so they cannot have produced the data; one entry per skip.
+        Empty in open loop.
     """
 
     findings: list
@@ -133,6 +138,7 @@ class DiagnosisReport:
     calibration: object = None
     calibration_after: object = None
     settings: dict = field(default_factory=dict)
+    skipped_candidates: list = field(default_factory=list)
 
     @property
     def effects(self) -> list[str]:
@@ -152,6 +158,13 @@ class DiagnosisReport:
             f"(p = {self.p_value_before:.2g}), after {self.gap_after:.3g} "
             f"(p = {self.p_value_after:.2g}); about 1 = agreement within noise"
         )
+        if self.skipped_candidates:
+            labels = sorted(set(self.skipped_candidates))
+            lines.append(
+                f"  skipped: {len(self.skipped_candidates)} candidate model(s) whose "
+                "closed loop with the controller is unstable (" + ", ".join(labels)
+                + ")"
+            )
         if not self.findings:
             lines.append("  no significant discrepancy: the model agrees with the "
                          "measurement within noise.")
@@ -186,6 +199,7 @@ class DiagnosisReport:
             "n_bins": int(self.frequencies.size),
             "calibration": _calibration_dict(self.calibration),
             "settings": _plain(self.settings),
+            "skipped_candidates": list(self.skipped_candidates),
         }
 
     def plot(self, *, axes=None):

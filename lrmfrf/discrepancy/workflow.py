@@ -201,9 +201,11 @@ def diagnose(
                                  problem, calibration_runs, window, rng)
         cal0 = calibration if calibration is not None else calibrator(nominal)
         _check_calibration(cal0, bins.size)
+        guard = _LoopGuard(controller, sample_time)
         return _run(problem, nominal, catalogue, calibrator, cal0, plant, controller,
                     alpha=alpha, effect_alpha=effect_alpha, ic_margin=ic_margin,
-                    max_effects=max_effects, debias_rounds=debias_rounds, F=F)
+                    max_effects=max_effects, debias_rounds=debias_rounds, F=F,
+                    guard=guard)
 
 
 # ---------------------------------------------------------------------------
@@ -212,7 +214,7 @@ def diagnose(
 
 
 def _run(problem, nominal, catalogue, calibrator, cal0, plant, controller, *,
-         alpha, effect_alpha, ic_margin, max_effects, debias_rounds, F):
+         alpha, effect_alpha, ic_margin, max_effects, debias_rounds, F, guard):
     _set_calibration(problem, cal0)
     w0 = problem.whitened(nominal)
     test0 = global_test(np.abs(w0) ** 2, cal0, alpha)
@@ -225,20 +227,22 @@ def _run(problem, nominal, catalogue, calibrator, cal0, plant, controller, *,
         current, ambiguous, cal_final = _greedy(
             problem, nominal, catalogue, accepted, params, steps, calibrator,
             alpha=alpha, effect_alpha=effect_alpha, ic_margin=ic_margin,
-            max_effects=max_effects, cal=cal0,
+            max_effects=max_effects, cal=cal0, guard=guard,
         )
         joint = None
         if accepted:
             context = _context(problem, current, cal_final)
             joint = fit_joint(problem, nominal, accepted, params, context)
-            if joint.cost <= problem.cost(current):
+            if joint.cost <= problem.cost(current) and guard.admits(
+                joint.plant, _joint_label(accepted)
+            ):
                 current, params = joint.plant, joint.params
             current, params, joint = _prune(problem, nominal, accepted, params,
                                             steps, current, joint, context,
-                                            effect_alpha)
+                                            effect_alpha, guard=guard)
             current, params, joint, cal_final = _debias(
                 problem, nominal, accepted, params, current, joint, context,
-                calibrator, cal_final, debias_rounds,
+                calibrator, cal_final, debias_rounds, guard,
             )
         findings = [
             _finding(problem, nominal, accepted, params, i, steps[i], joint)
@@ -249,7 +253,7 @@ def _run(problem, nominal, catalogue, calibrator, cal0, plant, controller, *,
         test = global_test(np.abs(problem.whitened(current)) ** 2, cal_final, alpha)
         if test.significant and ambiguous is None:
             extra = _unexplained(problem, nominal, accepted, params, current,
-                                 cal_final, effect_alpha)
+                                 cal_final, effect_alpha, guard)
             if extra is not None:
                 current, finding = extra
                 findings.append(finding)
@@ -288,11 +292,12 @@ def _run(problem, nominal, catalogue, calibrator, cal0, plant, controller, *,
                   "ic_margin": ic_margin, "max_effects": max_effects,
                   "debias_rounds": debias_rounds,
                   "calibration_runs": cal0.n_runs, "window": cal0.window},
+        skipped_candidates=list(guard.skipped),
     )
 
 
 def _debias(problem, nominal, accepted, params, current, joint, context,
-            calibrator, cal, rounds):
+            calibrator, cal, rounds, guard):
     """Bias-corrected joint refit (a fixed-point iteration).
 
     Local rational models are biased at sharp resonances by the noise (the
@@ -302,6 +307,7 @@ def _debias(problem, nominal, accepted, params, current, joint, context,
     (weights: the noise part of the calibrated error only), and ``b`` is
     recalibrated at the refitted model, ``rounds`` times. The problem is left
     with the bias counted as error in the scale (the yardstick of the gaps).
+    A refit whose closed loop with the controller is unstable ends the rounds.
     """
     for _ in range(rounds):
         if cal.noise_scale is None:
@@ -311,6 +317,8 @@ def _debias(problem, nominal, accepted, params, current, joint, context,
         refit = fit_joint(problem, nominal, accepted, params, context)
         if not refit.cost <= problem.cost(current):  # failed refit (or NaN)
             break
+        if not guard.admits(refit.plant, _joint_label(accepted, "debiased ")):
+            break
         current, params, joint = refit.plant, refit.params, refit
         cal = calibrator(current)
     _set_calibration(problem, cal)
@@ -318,14 +326,16 @@ def _debias(problem, nominal, accepted, params, current, joint, context,
 
 
 def _greedy(problem, nominal, catalogue, accepted, params, steps, calibrator, *,
-            alpha, effect_alpha, ic_margin, max_effects, cal):
+            alpha, effect_alpha, ic_margin, max_effects, cal, guard):
     """Accept the best significant, unambiguous candidate, up to max_effects.
 
     Each step fits every candidate on top of the accepted effects; the winner
     is accepted, all accepted effects are refitted jointly, earlier choices
     are revisited (:func:`_swap`), and the tests are recalibrated at the
     updated model (the null hypothesis of the next step). The search stops
-    when the updated model passes the global test.
+    when the updated model passes the global test. A candidate whose closed
+    loop with the controller is unstable cannot have made the data: it is
+    skipped (and counted by ``guard``).
     """
     current = nominal
     for _ in range(max_effects):
@@ -340,7 +350,8 @@ def _greedy(problem, nominal, catalogue, accepted, params, steps, calibrator, *,
                 if effect.label() in taken and not effect.repeatable:
                     continue
                 fit = fit_candidate(problem, nominal, accepted, params, effect, context)
-                if fit is not None and np.isfinite(fit.cost):
+                if (fit is not None and np.isfinite(fit.cost)
+                        and guard.admits(fit.plant, effect.label())):
                     fits.append((effect.label(), fit))
         if not fits:
             return current, None, cal
@@ -383,7 +394,7 @@ def _greedy(problem, nominal, catalogue, accepted, params, steps, calibrator, *,
         current = best.plant
         if len(accepted) > 1:
             current = _refit_and_swap(problem, nominal, accepted, params, steps,
-                                      context, current)
+                                      context, current, guard)
         cal = calibrator(current)
         _set_calibration(problem, cal)
         w_after = problem.whitened(current)
@@ -397,15 +408,18 @@ def _total_bic(problem, cost, effects) -> float:
     return cost / problem.inflation + n_params * math.log(problem.n_effective)
 
 
-def _refit_and_swap(problem, nominal, accepted, params, steps, context, current):
+def _refit_and_swap(problem, nominal, accepted, params, steps, context, current,
+                    guard):
     """Joint refit, then try each accepted effect's runners-up in its place.
 
     A choice made early (e.g. delay or low-pass, while a missing mode was
     still unmodelled) is replaced when the joint fit with the alternative has
-    a lower BIC.
+    a lower BIC. Refits whose closed loop is unstable are not taken.
     """
     joint = fit_joint(problem, nominal, accepted, params, context)
-    if joint.cost < problem.cost(current):
+    if joint.cost < problem.cost(current) and guard.admits(
+        joint.plant, _joint_label(accepted)
+    ):
         params[:] = joint.params
         current = joint.plant
     best_bic = _total_bic(problem, problem.cost(current), accepted)
@@ -421,7 +435,7 @@ def _refit_and_swap(problem, nominal, accepted, params, steps, context, current)
             trial_params[i] = alternative.params[0]
             fit = fit_joint(problem, nominal, trial, trial_params, context)
             bic = _total_bic(problem, fit.cost, trial)
-            if bic < best_bic:
+            if bic < best_bic and guard.admits(fit.plant, _joint_label(trial)):
                 accepted[i] = effect
                 params[:] = fit.params
                 current, best_bic = fit.plant, bic
@@ -429,12 +443,13 @@ def _refit_and_swap(problem, nominal, accepted, params, steps, context, current)
     return current
 
 
-def _unexplained(problem, nominal, accepted, params, current, cal, effect_alpha):
+def _unexplained(problem, nominal, accepted, params, current, cal, effect_alpha,
+                 guard):
     """Fit the unnamed low-order model error on top of the accepted effects."""
     context = _context(problem, current, cal)
     effect = ModelError()
     fit = fit_candidate(problem, nominal, accepted, params, effect, context)
-    if fit is None:
+    if fit is None or not guard.admits(fit.plant, effect.label()):
         return None
     cost0 = problem.cost(current)
     statistic, p_value = likelihood_ratio_p(problem, cost0, fit.cost, fit.n_params)
@@ -455,7 +470,7 @@ def _unexplained(problem, nominal, accepted, params, current, cal, effect_alpha)
 
 
 def _prune(problem, nominal, accepted, params, steps, current, joint, context,
-           effect_alpha):
+           effect_alpha, *, guard=None):
     """Drop accepted effects the joint model no longer needs.
 
     An effect accepted early can stand in for one found later (e.g. a gain
@@ -464,7 +479,8 @@ def _prune(problem, nominal, accepted, params, steps, current, joint, context,
     drop-one likelihood-ratio p-value (the others held at their values, so it
     errs towards keeping) is at least ``effect_alpha``, the least significant
     is removed and the rest refitted. A single effect is always kept (it was
-    accepted against the model without it).
+    accepted against the model without it). An effect whose removal leaves an
+    unstable closed loop (after the refit) is kept, and pruning stops.
     """
     while len(accepted) > 1:
         p_values = [_drop_one(problem, nominal, accepted, params, i)[1]
@@ -472,8 +488,14 @@ def _prune(problem, nominal, accepted, params, steps, current, joint, context,
         worst = int(np.argmax(p_values))
         if p_values[worst] < effect_alpha:
             break
+        kept = [i for i in range(len(accepted)) if i != worst]
+        trial = [accepted[i] for i in kept]
+        refit = fit_joint(problem, nominal, trial, [params[i] for i in kept],
+                          context)
+        if guard is not None and not guard.admits(refit.plant, _joint_label(trial)):
+            break
         del accepted[worst], params[worst], steps[worst]
-        joint = fit_joint(problem, nominal, accepted, params, context)
+        joint = refit
         current, params = joint.plant, joint.params
     return current, params, joint
 
@@ -616,13 +638,45 @@ class _Calibrator:
         )
 
 
-def measured_system(plant: ContinuousPlant, controller, sample_time: float):
-    """Discrete model of the measured system; raise if the loop is unstable."""
+def _joint_label(effects, prefix="") -> str:
+    return f"{prefix}joint refit of " + " + ".join(e.label() for e in effects)
+
+
+class _LoopGuard:
+    """Admit only plant models that close a stable loop with the controller.
+
+    A candidate model whose closed loop is unstable cannot describe the
+    measured (stable) system: the search skips it and records its label in
+    ``skipped`` (reported as ``DiagnosisReport.skipped_candidates``).
+    """
+
+    def __init__(self, controller, sample_time: float):
+        self.controller, self.sample_time = controller, sample_time
+        self.skipped: list[str] = []
+
+    def admits(self, plant: ContinuousPlant, label: str) -> bool:
+        if self.controller is None:
+            return True
+        _, radius = _closed_loop(plant, self.controller, self.sample_time)
+        if radius < 1.0:
+            return True
+        self.skipped.append(label)
+        return False
+
+
+def _closed_loop(plant: ContinuousPlant, controller, sample_time: float):
+    """Discrete closed loop ``P (1 + C P)^-1`` and its largest pole magnitude."""
     discrete = to_discrete_ss(plant, sample_time)
-    if controller is None:
-        return discrete
     loop = control.feedback(discrete, control.ss(controller), sign=-1)
     radius = float(np.max(np.abs(np.linalg.eigvals(loop.A)))) if loop.nstates else 0.0
+    return loop, radius
+
+
+def measured_system(plant: ContinuousPlant, controller, sample_time: float):
+    """Discrete model of the measured system; raise if the loop is unstable."""
+    if controller is None:
+        return to_discrete_ss(plant, sample_time)
+    loop, radius = _closed_loop(plant, controller, sample_time)
     if radius >= 1.0:
         raise ValueError(
             "the closed loop of `plant` and `controller` is unstable (largest pole "
