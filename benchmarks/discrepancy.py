@@ -69,7 +69,7 @@ def run_one(args):
         report = diagnose(
             experiment.plant, experiment.u_h, experiment.y_l, experiment.F,
             sample_time=experiment.sample_time, controller=experiment.controller,
-            calibration_runs=calibration_runs, random_state=seed,
+            calibration_runs=calibration_runs, rng=seed,
         )
     result = score(experiment, report)
     result.update(scenario=scenario, seed=seed,

@@ -40,6 +40,7 @@ from lrmfrf.discrepancy._models import (
 from lrmfrf.discrepancy.detect import (
     _coloured_noise,
     _inflation,
+    discrepancy_spectrum,
     global_test,
     uncalibrated,
 )
@@ -172,7 +173,7 @@ def test_global_test_false_alarm_rate_independent_bins():
     # combined (mean + spectrum max) test must be about alpha or less.
     # 2000 draws: the binomial std of a 1 % rate is 0.22 %; allow 2 %.
     rng = np.random.default_rng(0)
-    cal = uncalibrated(400, window=9, inflation=1.0)
+    cal = uncalibrated(400, smoothing_bins=9, inflation=1.0)
     alarms = [global_test(rng.exponential(size=400), cal, 0.01).significant
               for _ in range(2000)]
     assert np.mean(alarms) < 0.02
@@ -193,7 +194,7 @@ def test_inflation_measures_correlation():
     expected = float(np.sum(((L - np.abs(lags)) / L) ** 2))
     # 200 runs x 8 bands: relative std of the pooled variance about 4 %
     assert abs(c / expected - 1) < 0.15
-    cal = uncalibrated(K, window=9, inflation=c)
+    cal = uncalibrated(K, smoothing_bins=9, inflation=c)
     alarms = [global_test(row, cal, 0.05).significant for row in w2]
     assert np.mean(alarms) < 0.1
 
@@ -220,7 +221,7 @@ def _run(hidden, seed, **kwargs):
         report = diagnose(
             experiment.plant, experiment.u_h, experiment.y_l, experiment.F,
             sample_time=experiment.sample_time, controller=experiment.controller,
-            calibration_runs=6, random_state=seed, **kwargs,
+            calibration_runs=6, rng=seed, **kwargs,
         )
     return experiment, report, score(experiment, report)
 
@@ -350,7 +351,7 @@ def test_open_loop_without_controller():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         report = diagnose(model, u, y, 3, sample_time=Ts, calibration_runs=6,
-                          random_state=8)
+                          rng=8)
     assert not report.closed_loop
     assert report.effects == ["delay"], report.summary()
     assert abs(report.findings[0].parameters["delay"] / 0.35e-3 - 1) < 0.05
@@ -522,8 +523,7 @@ def test_candidate_that_destabilises_the_loop_is_skipped(stage):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         report = diagnose(stage.plant[0, 0], data["u"], data["y"], 3,
-                          sample_time=TS, controller=stage.controller,
-                          random_state=0)
+                          sample_time=TS, controller=stage.controller, rng=0)
     assert report.skipped_candidates, report.summary()
     assert "skipped" in report.summary()
     assert report.to_dict()["skipped_candidates"] == report.skipped_candidates
@@ -609,6 +609,11 @@ def test_uncalibrated_fallback_warns_without_noise_estimate(stage, small_data):
         ({"debias_rounds": 1.5}, TypeError, "`debias_rounds` must be an integer"),
         ({"ic_margin": -2.0}, ValueError, "`ic_margin` must be a finite number"),
         ({"sample_time": 0.0}, ValueError, "`sample_time` must be a positive"),
+        ({"smoothing_bins": 0}, ValueError, "`smoothing_bins` must be an integer >= 1"),
+        ({"rng": "seed"}, TypeError, "`rng` must be None, an int seed or a numpy"),
+        ({"rng": 0, "random_state": 1}, TypeError, "pass only `rng`, not both"),
+        ({"smoothing_bins": 5, "window": 7}, TypeError,
+         "`window` was renamed to `smoothing_bins`"),
         ({"effects": ["gain"]}, TypeError, "`effects` must hold Effect instances"),
         ({"calibration": 3}, TypeError, "`calibration` must be a Calibration"),
         ({"band": (500.0, 100.0)}, ValueError, "`band` must satisfy 0 <= low"),
@@ -618,6 +623,64 @@ def test_uncalibrated_fallback_warns_without_noise_estimate(stage, small_data):
 def test_bad_settings(stage, small_data, kwargs, error, match):
     with pytest.raises(error, match=match):
         _call(stage, *small_data, **kwargs)
+
+
+def test_renamed_keywords_warn_and_give_the_same_report(stage, small_data):
+    """`random_state` -> `rng`, `window` -> `smoothing_bins` (issue 12, item 8)."""
+    u, y = small_data
+    options = {"controller": stage.controller, "calibration_runs": 2,
+               "max_effects": 0, "sample_time": TS}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        new = diagnose(stage.plant[0, 0], u, y, 3, rng=4, smoothing_bins=5,
+                       **options)
+        with pytest.warns(FutureWarning) as record:
+            old = diagnose(stage.plant[0, 0], u, y, 3, random_state=4, window=5,
+                           **options)
+    messages = [str(w.message) for w in record]
+    assert any("`random_state` was renamed to `rng`" in m for m in messages)
+    assert any("`window` was renamed to `smoothing_bins`" in m for m in messages)
+    assert new.settings["smoothing_bins"] == old.settings["smoothing_bins"] == 5
+    assert new.calibration.smoothing_bins == 5
+    np.testing.assert_array_equal(new.spectrum_before, old.spectrum_before)
+    np.testing.assert_array_equal(new.calibration.scale, old.calibration.scale)
+    with pytest.warns(FutureWarning, match="`Calibration.window` was renamed"):
+        assert new.calibration.window == 5
+    with pytest.warns(FutureWarning, match="`window` was renamed"):
+        assert uncalibrated(10, window=3).smoothing_bins == 3
+    w2 = np.random.default_rng(0).random(30)
+    with pytest.warns(FutureWarning, match="`window` was renamed"):
+        old_spectrum = discrepancy_spectrum(w2, window=3)
+    np.testing.assert_array_equal(old_spectrum, discrepancy_spectrum(w2, 3))
+
+
+def test_sample_time_is_taken_from_a_discrete_model(stage, small_data):
+    """`sample_time` optional: the plant's dt, else the controller's (item 8)."""
+    u, y = small_data
+    given = _call(stage, u, y)
+    from_plant = _call(stage, u, y, sample_time=None)
+    from_controller = _call(stage, u, y, sample_time=None,
+                            plant=stage.plant_continuous[0, 0])
+    for report in (from_plant, from_controller):
+        np.testing.assert_allclose(report.frequencies, given.frequencies,
+                                   rtol=1e-12)
+        assert report.updated_plant.dt == TS
+    np.testing.assert_array_equal(from_plant.measured, given.measured)
+
+
+def test_no_sample_time_anywhere_is_an_error(stage, small_data):
+    with pytest.raises(ValueError, match="`sample_time` was not given and neither "
+                       "`plant` nor `controller` is a discrete model.*"
+                       "sample_time=0.5e-3"):
+        _call(stage, *small_data, sample_time=None, controller=None,
+              plant=stage.plant_continuous[0, 0])
+
+
+def test_sample_time_taken_from_plant_must_match_controller(stage, small_data):
+    plant = control.sample_system(stage.plant_continuous[0, 0], 1e-3)
+    with pytest.raises(ValueError, match=r"`controller` has dt=0.0005 s but "
+                       r"sample_time=0.001 s \(the dt of `plant`\)"):
+        _call(stage, *small_data, sample_time=None, plant=plant)
 
 
 def test_inputs_are_not_modified(stage, small_data):

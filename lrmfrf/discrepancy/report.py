@@ -263,7 +263,7 @@ def _calibration_dict(calibration) -> dict | None:
         "std_scale_rms": _plain(calibration.std_scale),
         "inflation": _plain(calibration.inflation),
         "spectrum_shape": _plain(calibration.spectrum_shape),
-        "window": calibration.window,
+        "smoothing_bins": calibration.smoothing_bins,
     }
 
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import numbers
 import warnings
 
 import control
@@ -11,7 +10,16 @@ import numpy as np
 from sklearn.base import clone
 from threadpoolctl import threadpool_limits
 
-from .._validation import check_records, check_siso_system
+from .._validation import (
+    check_nonnegative_float,
+    check_nonnegative_int,
+    check_probability,
+    check_records,
+    check_rng,
+    check_sample_time,
+    check_siso_system,
+    renamed_keyword,
+)
 from ._models import (
     ContinuousPlant,
     as_continuous_plant,
@@ -42,7 +50,7 @@ def diagnose(
     y_l,
     F: int,
     *,
-    sample_time: float,
+    sample_time: float | None = None,
     controller=None,
     estimator=None,
     effects: list[Effect] | None = None,
@@ -52,10 +60,12 @@ def diagnose(
     max_effects: int = 3,
     calibration_runs: int = 10,
     calibration: Calibration | None = None,
-    window: int = 9,
+    smoothing_bins: int = 9,
     band=None,
     debias_rounds: int = 2,
+    rng: int | np.random.Generator | None = None,
     random_state=None,
+    window=None,
 ) -> DiagnosisReport:
     """Find what is missing from a plant model, given a (slow-rate) measurement.
 
@@ -81,8 +91,10 @@ def diagnose(
         Slow-rate output(s), ``M = N / F``.
     F : int
         Downsampling factor.
-    sample_time : float
-        Fast sample time in s.
+    sample_time : float, optional
+        Fast sample time in s. Default: the ``dt`` of ``plant`` if it is
+        discrete, else of ``controller``; one of the three must give it. A
+        value that contradicts a discrete model's ``dt`` is an error.
     controller : control.StateSpace or control.TransferFunction, optional
         Discrete SISO feedback controller (``dt == sample_time``). The measured
         system is then ``P (1 + C P)^-1`` (eq. EquivalentSystems) and effects
@@ -112,8 +124,9 @@ def diagnose(
     calibration : Calibration, optional
         Reuse the nominal-model calibration of an earlier report
         (``report.calibration``) with the same inputs, plant and bins.
-    window : int, default=9
-        Bins in the discrepancy-spectrum moving mean.
+    smoothing_bins : int, default=9
+        Width in bins of the moving mean that makes the discrepancy spectrum
+        (called ``window`` before issue 12).
     band : (float, float), optional
         Compare only the estimator's bins with ``low <= f <= high`` (Hz), e.g.
         ``(0, slow_nyquist)`` to mimic a slow-rate-only analysis.
@@ -124,8 +137,12 @@ def diagnose(
         effects are refitted and the bias is recalibrated at the new model.
         Without it the damping of a 0.8 %-damped mode comes out ~30 % high.
         ``0`` skips it; it needs ``calibration_runs >= 2``.
-    random_state : int, numpy.random.Generator or None
-        Seed for the calibration noise.
+    rng : int, numpy.random.Generator or None
+        Seed or generator of the calibration noise (as ``rng`` in
+        :func:`lrmfrf.signals.multisine` and :func:`lrmfrf.simulate.simulate`).
+    random_state, window : optional
+        Deprecated names of ``rng`` and ``smoothing_bins`` (they warn with a
+        ``FutureWarning`` and are removed in the next release).
 
     Returns
     -------
@@ -134,8 +151,12 @@ def diagnose(
     Raises
     ------
     TypeError, ValueError
-        For a plant or controller of the wrong type or sample time, an unstable
-        closed loop, data the estimator cannot fit, or too few usable bins.
+        For a plant or controller of the wrong type or sample time, no sample
+        time (neither given nor a discrete model's ``dt``), an unstable closed
+        loop of the given plant and controller, data the estimator cannot fit,
+        or too few usable bins. (Candidate models tried by the search that
+        would make the loop unstable are skipped and listed in the report's
+        ``skipped_candidates``, not an error.)
 
     Examples
     --------
@@ -148,18 +169,22 @@ def diagnose(
     >>> u = np.stack([multisine(600, rng=i) for i in range(2)])
     >>> y = np.stack([simulate(control.ss(model), ui, 3, snr_db=40, rng=i).y_l
     ...               for i, ui in enumerate(u)])
-    >>> report = diagnose(model, u, y, 3, sample_time=Ts, random_state=0,
+    >>> report = diagnose(model, u, y, 3, rng=0,
     ...                   calibration_runs=6)  # doctest: +SKIP
     """
+    rng = renamed_keyword(rng, random_state, new="rng", old="random_state")
+    smoothing_bins = renamed_keyword(smoothing_bins, window, new="smoothing_bins",
+                                     old="window", default=9)
     u, y, F = check_records(u_h, y_l, F)
-    sample_time = _check_positive(sample_time, "sample_time")
-    _check_level(alpha, "alpha")
-    _check_level(effect_alpha, "effect_alpha")
-    ic_margin = _check_nonnegative(ic_margin, "ic_margin")
-    max_effects = _check_int(max_effects, "max_effects", 0)
-    calibration_runs = _check_int(calibration_runs, "calibration_runs", 0)
-    window = _check_int(window, "window", 1)
-    debias_rounds = _check_int(debias_rounds, "debias_rounds", 0)
+    sample_time, source = _resolve_sample_time(sample_time, plant, controller)
+    alpha = check_probability(alpha, "alpha")
+    effect_alpha = check_probability(effect_alpha, "effect_alpha")
+    ic_margin = check_nonnegative_float(ic_margin, "ic_margin")
+    max_effects = check_nonnegative_int(max_effects, "max_effects")
+    calibration_runs = check_nonnegative_int(calibration_runs, "calibration_runs")
+    smoothing_bins = check_nonnegative_int(smoothing_bins, "smoothing_bins",
+                                           minimum=1)
+    debias_rounds = check_nonnegative_int(debias_rounds, "debias_rounds")
     if calibration_runs == 1:
         raise ValueError(
             "`calibration_runs` must be 0 (no calibration) or >= 2 (the spread of "
@@ -172,9 +197,9 @@ def diagnose(
                 f"`effects` must hold Effect instances. Got {type(entry).__name__}. "
                 "Subclass lrmfrf.discrepancy.Effect."
             )
-    rng = np.random.default_rng(random_state)
+    rng = check_rng(rng)
     nominal = as_continuous_plant(plant, sample_time)
-    controller = _check_controller(controller, sample_time)
+    controller = _check_controller(controller, sample_time, source)
     measured_system(nominal, controller, sample_time)  # stability check
 
     band = _check_band(band)
@@ -198,7 +223,7 @@ def diagnose(
             inflation=1.0,
         )
         calibrator = _Calibrator(template, fitted, u, F, sample_time, bins, controller,
-                                 problem, calibration_runs, window, rng)
+                                 problem, calibration_runs, smoothing_bins, rng)
         cal0 = calibration if calibration is not None else calibrator(nominal)
         _check_calibration(cal0, bins.size)
         guard = _LoopGuard(controller, sample_time)
@@ -291,7 +316,8 @@ def _run(problem, nominal, catalogue, calibrator, cal0, plant, controller, *,
         settings={"alpha": alpha, "effect_alpha": effect_alpha,
                   "ic_margin": ic_margin, "max_effects": max_effects,
                   "debias_rounds": debias_rounds,
-                  "calibration_runs": cal0.n_runs, "window": cal0.window},
+                  "calibration_runs": cal0.n_runs,
+                  "smoothing_bins": cal0.smoothing_bins},
         skipped_candidates=list(guard.skipped),
     )
 
@@ -586,7 +612,7 @@ def _context(problem: FitProblem, plant: ContinuousPlant, cal) -> EffectContext:
         sample_time=problem.sample_time,
         plant_ratio=ratio,
         plant_weight=weight,
-        discrepancy=discrepancy_spectrum(w2, cal.window),
+        discrepancy=discrepancy_spectrum(w2, cal.smoothing_bins),
         resonances=resonances(plant),
         sensitivity=sensitivity,
         residual=residual,
@@ -608,11 +634,11 @@ class _Calibrator:
     """Calibrate at a given plant model (simulation, or the fallback)."""
 
     def __init__(self, template, fitted, u, F, sample_time, bins, controller,
-                 problem, n_runs, window, rng):
+                 problem, n_runs, smoothing_bins, rng):
         self.template, self.fitted = template, fitted
         self.u, self.F, self.sample_time = u, F, sample_time
         self.bins, self.controller, self.problem = bins, controller, problem
-        self.n_runs, self.window, self.rng = n_runs, window, rng
+        self.n_runs, self.smoothing_bins, self.rng = n_runs, smoothing_bins, rng
         noise = getattr(fitted, "noise_variance_", None)
         self.noise = None if noise is None else np.asarray(noise, dtype=float)
         if self.n_runs and (self.noise is None or not np.any(np.isfinite(self.noise))):
@@ -628,12 +654,13 @@ class _Calibrator:
         if self.n_runs == 0:
             half_window = getattr(self.template, "half_window", 4)
             inflation = max(float(half_window) / 4.0, 1.0)
-            return uncalibrated(self.bins.size, self.window, inflation)
+            return uncalibrated(self.bins.size, self.smoothing_bins, inflation)
         system = measured_system(plant, self.controller, self.sample_time)
         model_frf = self.problem.measured_response(self.problem.plant_response(plant))
         return calibrate(
             self.template, system, self.u, self.F, self.sample_time, self.noise,
-            self.bins, model_frf, n_runs=self.n_runs, window=self.window,
+            self.bins, model_frf, n_runs=self.n_runs,
+            smoothing_bins=self.smoothing_bins,
             rng=self.rng,
         )
 
@@ -781,7 +808,32 @@ def _check_band(band) -> tuple:
     return (low, high)
 
 
-def _check_controller(controller, sample_time):
+def _resolve_sample_time(sample_time, plant, controller) -> tuple[float, str]:
+    """The fast sample time and where it came from (for messages).
+
+    Given: checked. Not given: the ``dt`` of a discrete ``plant``, else of a
+    discrete ``controller``; else an error asking for it.
+    """
+    if sample_time is not None:
+        value = check_sample_time(sample_time)
+        return value, f"sample_time={value!r} s"
+    check_siso_system(plant, "`plant`", discrete=False,
+                      hint="stage.plant[0, 0] for y4")
+    for model, name in ((plant, "`plant`"), (controller, "`controller`")):
+        if model is None or not isinstance(model, control.LTI):
+            continue
+        dt = model.dt
+        if control.isdtime(model, strict=True) and not isinstance(dt, bool):
+            value = check_sample_time(dt)
+            return value, f"sample_time={value!r} s (the dt of {name})"
+    raise ValueError(
+        "`sample_time` was not given and neither `plant` nor `controller` is a "
+        "discrete model with a known dt to take it from. Pass the fast sample "
+        "time in seconds, e.g. sample_time=0.5e-3."
+    )
+
+
+def _check_controller(controller, sample_time, source):
     if controller is None:
         return None
     check_siso_system(controller, "`controller`", discrete=False)
@@ -793,8 +845,8 @@ def _check_controller(controller, sample_time):
         )
     if not math.isclose(float(controller.dt), sample_time, rel_tol=1e-9):
         raise ValueError(
-            f"`controller` has dt={float(controller.dt)!r} s but sample_time="
-            f"{sample_time!r} s. Pass the controller at the fast sample time."
+            f"`controller` has dt={float(controller.dt)!r} s but {source}. Pass "
+            "the controller at the fast sample time."
         )
     return control.ss(controller)
 
@@ -810,36 +862,3 @@ def _check_calibration(cal, n_bins):
             f"`calibration` was made for {cal.bias.shape[0]} bins, these data have "
             f"{n_bins}. Reuse a calibration only with the same inputs and estimator."
         )
-
-
-def _check_positive(value, name) -> float:
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise TypeError(f"`{name}` must be a positive number. Got {value!r}.")
-    value = float(value)
-    if not math.isfinite(value) or value <= 0:
-        raise ValueError(f"`{name}` must be a positive, finite number. Got {value!r}.")
-    return value
-
-
-def _check_nonnegative(value, name) -> float:
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise TypeError(f"`{name}` must be a number >= 0. Got {value!r}.")
-    if not math.isfinite(value) or value < 0:
-        raise ValueError(f"`{name}` must be a finite number >= 0. Got {value!r}.")
-    return float(value)
-
-
-def _check_level(value, name) -> float:
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise TypeError(f"`{name}` must be a probability in (0, 1). Got {value!r}.")
-    if not 0 < value < 1:
-        raise ValueError(f"`{name}` must be in (0, 1). Got {value!r}.")
-    return float(value)
-
-
-def _check_int(value, name, minimum) -> int:
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-        raise TypeError(f"`{name}` must be an integer >= {minimum}. Got {value!r}.")
-    if value < minimum:
-        raise ValueError(f"`{name}` must be an integer >= {minimum}. Got {value}.")
-    return int(value)
