@@ -362,9 +362,9 @@ def test_redundant_effect_is_pruned_after_the_joint_refit(nominal):
     # A gain accepted early (standing in for something found later) that the
     # joint model no longer needs (gain 1, drop-one p ~ 1) is removed; the
     # delay that explains the data is kept and refitted.
+    from lrmfrf.discrepancy._search import _context, _prune
     from lrmfrf.discrepancy.effects import Delay
     from lrmfrf.discrepancy.fit import FitProblem
-    from lrmfrf.discrepancy.workflow import _context, _prune
 
     rng = np.random.default_rng(4)
     truth = Delay().apply(nominal, {"delay": 0.3e-3})
@@ -557,11 +557,12 @@ def test_nan_std_bins_are_dropped_with_a_warning(stage, small_data):
     est.frf_std_ = est.frf_std_.copy()
     est.frf_std_[100:105] = np.nan
     est.frf_std_[200] = 0.0
-    with pytest.warns(UserWarning, match="6 of 600 bins .* left out"):
+    with pytest.warns(UserWarning, match="6 of 600 bins .* left out") as record:
         report = diagnose(stage.plant[0, 0], u, y, 3, sample_time=TS,
                           controller=stage.controller, estimator=est,
                           calibration_runs=0, max_effects=0)
     assert report.frequencies.size == 594
+    assert record[0].filename == __file__  # the warning points at the caller
     assert np.all(np.isfinite(report.std))
 
 
@@ -608,6 +609,8 @@ def test_uncalibrated_fallback_warns_without_noise_estimate(stage, small_data):
         ({"max_effects": -1}, ValueError, "`max_effects` must be an integer >= 0"),
         ({"debias_rounds": 1.5}, TypeError, "`debias_rounds` must be an integer"),
         ({"ic_margin": -2.0}, ValueError, "`ic_margin` must be a finite number"),
+        ({"ic_margin": "6"}, TypeError, "`ic_margin` must be a number >= 0"),
+        ({"rng": -1}, ValueError, "`rng` must be a seed >= 0"),
         ({"sample_time": 0.0}, ValueError, "`sample_time` must be a positive"),
         ({"smoothing_bins": 0}, ValueError, "`smoothing_bins` must be an integer >= 1"),
         ({"rng": "seed"}, TypeError, "`rng` must be None, an int seed or a numpy"),
@@ -640,6 +643,7 @@ def test_renamed_keywords_warn_and_give_the_same_report(stage, small_data):
     messages = [str(w.message) for w in record]
     assert any("`random_state` was renamed to `rng`" in m for m in messages)
     assert any("`window` was renamed to `smoothing_bins`" in m for m in messages)
+    assert all(w.filename == __file__ for w in record)  # points at the caller
     assert new.settings["smoothing_bins"] == old.settings["smoothing_bins"] == 5
     assert new.calibration.smoothing_bins == 5
     np.testing.assert_array_equal(new.spectrum_before, old.spectrum_before)
