@@ -500,7 +500,7 @@ def renamed_keyword(new_value, old_value, *, new: str, old: str, default=None,
 
     if old_value is None:
         return new_value
-    if new_value is not default and new_value != default:
+    if new_value is not default and not _equals(new_value, default):
         raise TypeError(
             f"`{old}` was renamed to `{new}` ({since}); pass only `{new}`, not "
             "both."
@@ -511,3 +511,10 @@ def renamed_keyword(new_value, old_value, *, new: str, old: str, default=None,
         FutureWarning, stacklevel=stacklevel,
     )
     return old_value
+
+
+def _equals(value, default) -> bool:
+    try:
+        return bool(value == default)
+    except (TypeError, ValueError):  # arrays and the like: not the default
+        return False

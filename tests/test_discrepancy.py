@@ -457,13 +457,58 @@ def test_report_summary_and_json(delay_report):
 
 
 def test_report_plot(delay_report):
+    """(fig, axes) like plot_frf; dB with units; continuous phase (item 16)."""
     matplotlib = pytest.importorskip("matplotlib")
     matplotlib.use("Agg")
-    drawn = delay_report.plot()
-    assert len(drawn["axes"]) == 3
     import matplotlib.pyplot as plt
 
-    plt.close(drawn["figure"])
+    fig, axes = delay_report.plot(units="m/N")
+    assert isinstance(fig, matplotlib.figure.Figure) and axes.shape == (3,)
+    mag, phase, disc = axes
+    assert mag.get_ylabel() == "Magnitude [dB re 1 m/N]"
+    assert phase.get_ylabel() == "Phase [deg]"
+    assert disc.get_xlabel() == "Frequency [Hz]"
+    labels = mag.get_legend().get_texts()
+    nyquist = f"slow Nyquist {delay_report.slow_nyquist:.4g} Hz"
+    assert nyquist in [t.get_text() for t in labels]
+    # magnitude in dB: the measured points are 20 log10 |G|
+    measured = mag.get_lines()[0]
+    np.testing.assert_allclose(measured.get_ydata(),
+                               20 * np.log10(np.abs(delay_report.measured)),
+                               rtol=1e-12)
+    # the phase of both models is continuous: their wrapped phase jumps by
+    # about 360 deg; drawn, no step between neighbouring bins is a wrap, and
+    # the curves leave (-180, 180]
+    models = (delay_report.model_before, delay_report.model_after)
+    for line, model in zip(phase.get_lines()[1:3], models, strict=True):
+        assert np.abs(np.diff(np.degrees(np.angle(model)))).max() > 300.0
+        drawn = line.get_ydata()
+        assert np.abs(np.diff(drawn)).max() < 180.0
+        assert drawn.min() < -180.0
+    # the measured phase lies on the updated model's branch
+    gap = phase.get_lines()[0].get_ydata() - phase.get_lines()[2].get_ydata()
+    assert np.all(np.abs(gap) <= 180.0)
+    plt.close(fig)
+
+    fig, axes = delay_report.plot()
+    assert axes[0].get_ylabel() == "Magnitude [dB]"
+    plt.close(fig)
+
+
+def test_report_plot_old_api_warns(delay_report):
+    matplotlib = pytest.importorskip("matplotlib")
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, given = plt.subplots(3, 1)
+    with pytest.warns(FutureWarning, match="`axes` was renamed to `ax`"):
+        result = delay_report.plot(axes=given)
+    with pytest.warns(FutureWarning, match=r"now returns \(fig, axes\)"):
+        assert result["figure"] is fig
+    assert result[0] is fig and list(result[1]) == list(given)
+    with pytest.raises(ValueError, match="`ax` must be three Axes"):
+        delay_report.plot(ax=given[:2])
+    plt.close(fig)
 
 
 # ---------------------------------------------------------------------------
