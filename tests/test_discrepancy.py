@@ -578,6 +578,18 @@ def test_candidate_that_destabilises_the_loop_is_skipped(stage):
     assert report.gap_after <= report.gap_before
 
 
+def test_loop_guard_skips_only_unstable_closed_loops(stage, nominal):
+    from lrmfrf.discrepancy._search import LoopGuard
+
+    guard = LoopGuard(control.ss(stage.controller), TS)
+    loud = Gain().apply(nominal, {"gain": 20.0})  # the loop gain x 20: unstable
+    assert guard.admits(nominal, "nominal")
+    assert not guard.admits(loud, "gain")
+    assert guard.skipped == ["gain"]
+    open_loop = LoopGuard(None, TS)  # no loop to destabilise
+    assert open_loop.admits(loud, "gain") and open_loop.skipped == []
+
+
 def test_continuous_controller(stage, small_data):
     with pytest.raises(ValueError, match="`controller` must be discrete"):
         _call(stage, *small_data, controller=control.tf([1.0], [1.0, 1.0]))

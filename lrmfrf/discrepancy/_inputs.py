@@ -140,6 +140,10 @@ def measured_system(plant: ContinuousPlant, controller, sample_time: float):
 
 
 def fit_estimator(estimator, u, y, F, sample_time):
+    """The fitted estimator (fitted here unless it already is) and a template.
+
+    The template is an unfitted clone, refitted by the calibration runs.
+    """
     if estimator is None:
         from ..estimators import LRMBeyondNyquist
 
@@ -182,6 +186,7 @@ def fit_estimator(estimator, u, y, F, sample_time):
 
 
 def usable_bins(fitted, band) -> np.ndarray:
+    """Indices of the bins in ``band`` with a valid, finite FRF and std > 0."""
     frf = np.asarray(fitted.frf_)
     std = np.asarray(fitted.frf_std_)
     freqs = np.asarray(fitted.frequencies_, dtype=float)
@@ -214,6 +219,7 @@ def usable_bins(fitted, band) -> np.ndarray:
 
 
 def check_band(band) -> tuple:
+    """``band`` as ``(low, high)`` in Hz; ``None`` means every bin."""
     if band is None:
         return (0.0, math.inf)
     try:
@@ -255,6 +261,10 @@ def resolve_sample_time(sample_time, plant, controller) -> tuple[float, str]:
 
 
 def check_controller(controller, sample_time, source):
+    """The controller as discrete state space at ``sample_time`` (or None).
+
+    ``source`` says where the sample time came from, for the message.
+    """
     if controller is None:
         return None
     check_siso_system(controller, "`controller`", discrete=False)
@@ -273,6 +283,7 @@ def check_controller(controller, sample_time, source):
 
 
 def check_calibration(cal, n_bins):
+    """Check a reused calibration against the number of compared bins."""
     if not isinstance(cal, Calibration):
         raise TypeError(
             "`calibration` must be a Calibration from an earlier report "
