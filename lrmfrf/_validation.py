@@ -475,3 +475,123 @@ def check_sample_time(sample_time) -> float:
             "time, e.g. sample_time=0.5e-3."
         )
     return value
+
+
+# ---------------------------------------------------------------------------
+# Generic checks first needed by the discrepancy workflow (issue 12, item 9)
+# ---------------------------------------------------------------------------
+
+__all__ += [
+    "check_nonnegative_float",
+    "check_probability",
+    "check_rng",
+    "renamed_keyword",
+]
+
+
+def check_nonnegative_float(value, name: str) -> float:
+    """Return ``value`` as a finite float >= 0, or raise.
+
+    Booleans and strings are refused (``TypeError``); NaN, inf and negative
+    numbers are refused (``ValueError``).
+    """
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(
+            f"`{name}` must be a number >= 0. Got {value!r} of type "
+            f"{type(value).__name__} instead. Pass a finite number, e.g. {name}=1.0."
+        )
+    if not np.isfinite(value) or value < 0:
+        raise ValueError(
+            f"`{name}` must be a finite number >= 0. Got {value!r} instead. Pass "
+            "a finite number, or use the default."
+        )
+    return float(value)
+
+
+def check_probability(value, name: str) -> float:
+    """Return a significance level (a probability strictly between 0 and 1)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(
+            f"`{name}` must be a probability in (0, 1). Got {value!r} of type "
+            f"{type(value).__name__} instead. Pass e.g. {name}=0.01."
+        )
+    if not 0 < value < 1:
+        raise ValueError(
+            f"`{name}` must be in (0, 1). Got {value!r} instead. Pass e.g. "
+            f"{name}=0.01."
+        )
+    return float(value)
+
+
+def check_rng(rng, name: str = "rng") -> np.random.Generator:
+    """Return a ``numpy.random.Generator`` from ``None``, an int seed or a Generator.
+
+    A Generator is returned as is (it is drawn from, so the caller's stream
+    advances); ``None`` gives fresh entropy.
+    """
+    valid = rng is None or isinstance(rng, (numbers.Integral, np.random.Generator))
+    if not valid or isinstance(rng, bool):
+        raise TypeError(
+            f"`{name}` must be None, an int seed or a numpy.random.Generator. Got "
+            f"{rng!r} of type {type(rng).__name__} instead. Pass e.g. {name}=0 or "
+            f"{name}=np.random.default_rng(0)."
+        )
+    if isinstance(rng, numbers.Integral) and rng < 0:
+        raise ValueError(
+            f"`{name}` must be a seed >= 0. Got {rng} instead. Pass e.g. {name}=0."
+        )
+    return np.random.default_rng(rng)
+
+
+def renamed_keyword(new_value, old_value, *, new: str, old: str, default=None,
+                    since: str = "issue 12", stacklevel: int = 3):
+    """Resolve a renamed keyword argument that keeps working for one release.
+
+    Parameters
+    ----------
+    new_value : object
+        Value passed under the new name (``default`` when not passed).
+    old_value : object
+        Value passed under the old name; ``None`` when not passed.
+    new, old : str
+        The new and the old keyword names.
+    default : object, optional
+        The new keyword's default, to tell whether it was passed.
+    since : str
+        Shown in the warning.
+    stacklevel : int, default=3
+        Points the warning at the caller of the function that calls this.
+
+    Returns
+    -------
+    object
+        ``old_value`` (with a ``FutureWarning``) when only the old name was
+        passed, else ``new_value``.
+
+    Raises
+    ------
+    TypeError
+        When both names were passed.
+    """
+    import warnings
+
+    if old_value is None:
+        return new_value
+    if new_value is not default and not _equals(new_value, default):
+        raise TypeError(
+            f"`{old}` was renamed to `{new}` ({since}); pass only `{new}`, not "
+            "both."
+        )
+    warnings.warn(
+        f"`{old}` was renamed to `{new}` ({since}) and will be removed in the next "
+        f"release. Use {new}=... instead.",
+        FutureWarning, stacklevel=stacklevel,
+    )
+    return old_value
+
+
+def _equals(value, default) -> bool:
+    try:
+        return bool(value == default)
+    except (TypeError, ValueError):  # arrays and the like: not the default
+        return False

@@ -13,11 +13,13 @@ from __future__ import annotations
 import json
 import math
 import warnings
+from pathlib import Path
 
 import control
 import numpy as np
 import pytest
 
+import lrmfrf
 from lrmfrf import LRMBeyondNyquist
 from lrmfrf.discrepancy import (
     Effect,
@@ -38,6 +40,7 @@ from lrmfrf.discrepancy._models import (
 from lrmfrf.discrepancy.detect import (
     _coloured_noise,
     _inflation,
+    discrepancy_spectrum,
     global_test,
     uncalibrated,
 )
@@ -170,7 +173,7 @@ def test_global_test_false_alarm_rate_independent_bins():
     # combined (mean + spectrum max) test must be about alpha or less.
     # 2000 draws: the binomial std of a 1 % rate is 0.22 %; allow 2 %.
     rng = np.random.default_rng(0)
-    cal = uncalibrated(400, window=9, inflation=1.0)
+    cal = uncalibrated(400, smoothing_bins=9, inflation=1.0)
     alarms = [global_test(rng.exponential(size=400), cal, 0.01).significant
               for _ in range(2000)]
     assert np.mean(alarms) < 0.02
@@ -191,7 +194,7 @@ def test_inflation_measures_correlation():
     expected = float(np.sum(((L - np.abs(lags)) / L) ** 2))
     # 200 runs x 8 bands: relative std of the pooled variance about 4 %
     assert abs(c / expected - 1) < 0.15
-    cal = uncalibrated(K, window=9, inflation=c)
+    cal = uncalibrated(K, smoothing_bins=9, inflation=c)
     alarms = [global_test(row, cal, 0.05).significant for row in w2]
     assert np.mean(alarms) < 0.1
 
@@ -218,7 +221,7 @@ def _run(hidden, seed, **kwargs):
         report = diagnose(
             experiment.plant, experiment.u_h, experiment.y_l, experiment.F,
             sample_time=experiment.sample_time, controller=experiment.controller,
-            calibration_runs=6, random_state=seed, **kwargs,
+            calibration_runs=6, rng=seed, **kwargs,
         )
     return experiment, report, score(experiment, report)
 
@@ -348,7 +351,7 @@ def test_open_loop_without_controller():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         report = diagnose(model, u, y, 3, sample_time=Ts, calibration_runs=6,
-                          random_state=8)
+                          rng=8)
     assert not report.closed_loop
     assert report.effects == ["delay"], report.summary()
     assert abs(report.findings[0].parameters["delay"] / 0.35e-3 - 1) < 0.05
@@ -359,9 +362,9 @@ def test_redundant_effect_is_pruned_after_the_joint_refit(nominal):
     # A gain accepted early (standing in for something found later) that the
     # joint model no longer needs (gain 1, drop-one p ~ 1) is removed; the
     # delay that explains the data is kept and refitted.
+    from lrmfrf.discrepancy._search import _context, _prune
     from lrmfrf.discrepancy.effects import Delay
     from lrmfrf.discrepancy.fit import FitProblem
-    from lrmfrf.discrepancy.workflow import _context, _prune
 
     rng = np.random.default_rng(4)
     truth = Delay().apply(nominal, {"delay": 0.3e-3})
@@ -454,13 +457,58 @@ def test_report_summary_and_json(delay_report):
 
 
 def test_report_plot(delay_report):
+    """(fig, axes) like plot_frf; dB with units; continuous phase (item 16)."""
     matplotlib = pytest.importorskip("matplotlib")
     matplotlib.use("Agg")
-    drawn = delay_report.plot()
-    assert len(drawn["axes"]) == 3
     import matplotlib.pyplot as plt
 
-    plt.close(drawn["figure"])
+    fig, axes = delay_report.plot(units="m/N")
+    assert isinstance(fig, matplotlib.figure.Figure) and axes.shape == (3,)
+    mag, phase, disc = axes
+    assert mag.get_ylabel() == "Magnitude [dB re 1 m/N]"
+    assert phase.get_ylabel() == "Phase [deg]"
+    assert disc.get_xlabel() == "Frequency [Hz]"
+    labels = mag.get_legend().get_texts()
+    nyquist = f"slow Nyquist {delay_report.slow_nyquist:.4g} Hz"
+    assert nyquist in [t.get_text() for t in labels]
+    # magnitude in dB: the measured points are 20 log10 |G|
+    measured = mag.get_lines()[0]
+    np.testing.assert_allclose(measured.get_ydata(),
+                               20 * np.log10(np.abs(delay_report.measured)),
+                               rtol=1e-12)
+    # the phase of both models is continuous: their wrapped phase jumps by
+    # about 360 deg; drawn, no step between neighbouring bins is a wrap, and
+    # the curves leave (-180, 180]
+    models = (delay_report.model_before, delay_report.model_after)
+    for line, model in zip(phase.get_lines()[1:3], models, strict=True):
+        assert np.abs(np.diff(np.degrees(np.angle(model)))).max() > 300.0
+        drawn = line.get_ydata()
+        assert np.abs(np.diff(drawn)).max() < 180.0
+        assert drawn.min() < -180.0
+    # the measured phase lies on the updated model's branch
+    gap = phase.get_lines()[0].get_ydata() - phase.get_lines()[2].get_ydata()
+    assert np.all(np.abs(gap) <= 180.0)
+    plt.close(fig)
+
+    fig, axes = delay_report.plot()
+    assert axes[0].get_ylabel() == "Magnitude [dB]"
+    plt.close(fig)
+
+
+def test_report_plot_old_api_warns(delay_report):
+    matplotlib = pytest.importorskip("matplotlib")
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, given = plt.subplots(3, 1)
+    with pytest.warns(FutureWarning, match="`axes` was renamed to `ax`"):
+        result = delay_report.plot(axes=given)
+    with pytest.warns(FutureWarning, match=r"now returns \(fig, axes\)"):
+        assert result["figure"] is fig
+    assert result[0] is fig and list(result[1]) == list(given)
+    with pytest.raises(ValueError, match="`ax` must be three Axes"):
+        delay_report.plot(ax=given[:2])
+    plt.close(fig)
 
 
 # ---------------------------------------------------------------------------
@@ -503,8 +551,43 @@ def test_plant_of_wrong_type(stage, small_data):
 
 
 def test_unstable_closed_loop(stage, small_data):
-    with pytest.raises(ValueError, match="closed loop .* is unstable"):
+    with pytest.raises(ValueError, match="closed loop of `plant` and `controller` "
+                       "is unstable"):
         _call(stage, *small_data, controller=stage.controller * 20)
+
+
+def test_candidate_that_destabilises_the_loop_is_skipped(stage):
+    """Bug (issue 12, item 2): the shipped example data with the shipped model.
+
+    The data are the closed loop to the `z` output, the model is the `y4`
+    plant, so the search tries large changes; some candidates make the
+    closed loop unstable. They must be skipped and counted, not abort the run
+    with an error that blames the user's (stable) model.
+    """
+    data = np.load(Path(lrmfrf.__file__).parent / "data" / "wafer_stage_example.npz")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        report = diagnose(stage.plant[0, 0], data["u"], data["y"], 3,
+                          sample_time=TS, controller=stage.controller, rng=0)
+    assert report.skipped_candidates, report.summary()
+    assert "skipped" in report.summary()
+    assert report.to_dict()["skipped_candidates"] == report.skipped_candidates
+    # every model the report holds closes a stable loop with the controller
+    loop = control.feedback(report.updated_plant, stage.controller)
+    assert np.max(np.abs(np.linalg.eigvals(loop.A))) < 1.0
+    assert report.gap_after <= report.gap_before
+
+
+def test_loop_guard_skips_only_unstable_closed_loops(stage, nominal):
+    from lrmfrf.discrepancy._search import LoopGuard
+
+    guard = LoopGuard(control.ss(stage.controller), TS)
+    loud = Gain().apply(nominal, {"gain": 20.0})  # the loop gain x 20: unstable
+    assert guard.admits(nominal, "nominal")
+    assert not guard.admits(loud, "gain")
+    assert guard.skipped == ["gain"]
+    open_loop = LoopGuard(None, TS)  # no loop to destabilise
+    assert open_loop.admits(loud, "gain") and open_loop.skipped == []
 
 
 def test_continuous_controller(stage, small_data):
@@ -531,11 +614,12 @@ def test_nan_std_bins_are_dropped_with_a_warning(stage, small_data):
     est.frf_std_ = est.frf_std_.copy()
     est.frf_std_[100:105] = np.nan
     est.frf_std_[200] = 0.0
-    with pytest.warns(UserWarning, match="6 of 600 bins .* left out"):
+    with pytest.warns(UserWarning, match="6 of 600 bins .* left out") as record:
         report = diagnose(stage.plant[0, 0], u, y, 3, sample_time=TS,
                           controller=stage.controller, estimator=est,
                           calibration_runs=0, max_effects=0)
     assert report.frequencies.size == 594
+    assert record[0].filename == __file__  # the warning points at the caller
     assert np.all(np.isfinite(report.std))
 
 
@@ -582,7 +666,14 @@ def test_uncalibrated_fallback_warns_without_noise_estimate(stage, small_data):
         ({"max_effects": -1}, ValueError, "`max_effects` must be an integer >= 0"),
         ({"debias_rounds": 1.5}, TypeError, "`debias_rounds` must be an integer"),
         ({"ic_margin": -2.0}, ValueError, "`ic_margin` must be a finite number"),
+        ({"ic_margin": "6"}, TypeError, "`ic_margin` must be a number >= 0"),
+        ({"rng": -1}, ValueError, "`rng` must be a seed >= 0"),
         ({"sample_time": 0.0}, ValueError, "`sample_time` must be a positive"),
+        ({"smoothing_bins": 0}, ValueError, "`smoothing_bins` must be an integer >= 1"),
+        ({"rng": "seed"}, TypeError, "`rng` must be None, an int seed or a numpy"),
+        ({"rng": 0, "random_state": 1}, TypeError, "pass only `rng`, not both"),
+        ({"smoothing_bins": 5, "window": 7}, TypeError,
+         "`window` was renamed to `smoothing_bins`"),
         ({"effects": ["gain"]}, TypeError, "`effects` must hold Effect instances"),
         ({"calibration": 3}, TypeError, "`calibration` must be a Calibration"),
         ({"band": (500.0, 100.0)}, ValueError, "`band` must satisfy 0 <= low"),
@@ -592,6 +683,65 @@ def test_uncalibrated_fallback_warns_without_noise_estimate(stage, small_data):
 def test_bad_settings(stage, small_data, kwargs, error, match):
     with pytest.raises(error, match=match):
         _call(stage, *small_data, **kwargs)
+
+
+def test_renamed_keywords_warn_and_give_the_same_report(stage, small_data):
+    """`random_state` -> `rng`, `window` -> `smoothing_bins` (issue 12, item 8)."""
+    u, y = small_data
+    options = {"controller": stage.controller, "calibration_runs": 2,
+               "max_effects": 0, "sample_time": TS}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        new = diagnose(stage.plant[0, 0], u, y, 3, rng=4, smoothing_bins=5,
+                       **options)
+        with pytest.warns(FutureWarning) as record:
+            old = diagnose(stage.plant[0, 0], u, y, 3, random_state=4, window=5,
+                           **options)
+    messages = [str(w.message) for w in record]
+    assert any("`random_state` was renamed to `rng`" in m for m in messages)
+    assert any("`window` was renamed to `smoothing_bins`" in m for m in messages)
+    assert all(w.filename == __file__ for w in record)  # points at the caller
+    assert new.settings["smoothing_bins"] == old.settings["smoothing_bins"] == 5
+    assert new.calibration.smoothing_bins == 5
+    np.testing.assert_array_equal(new.spectrum_before, old.spectrum_before)
+    np.testing.assert_array_equal(new.calibration.scale, old.calibration.scale)
+    with pytest.warns(FutureWarning, match="`Calibration.window` was renamed"):
+        assert new.calibration.window == 5
+    with pytest.warns(FutureWarning, match="`window` was renamed"):
+        assert uncalibrated(10, window=3).smoothing_bins == 3
+    w2 = np.random.default_rng(0).random(30)
+    with pytest.warns(FutureWarning, match="`window` was renamed"):
+        old_spectrum = discrepancy_spectrum(w2, window=3)
+    np.testing.assert_array_equal(old_spectrum, discrepancy_spectrum(w2, 3))
+
+
+def test_sample_time_is_taken_from_a_discrete_model(stage, small_data):
+    """`sample_time` optional: the plant's dt, else the controller's (item 8)."""
+    u, y = small_data
+    given = _call(stage, u, y)
+    from_plant = _call(stage, u, y, sample_time=None)
+    from_controller = _call(stage, u, y, sample_time=None,
+                            plant=stage.plant_continuous[0, 0])
+    for report in (from_plant, from_controller):
+        np.testing.assert_allclose(report.frequencies, given.frequencies,
+                                   rtol=1e-12)
+        assert report.updated_plant.dt == TS
+    np.testing.assert_array_equal(from_plant.measured, given.measured)
+
+
+def test_no_sample_time_anywhere_is_an_error(stage, small_data):
+    with pytest.raises(ValueError, match="`sample_time` was not given and neither "
+                       "`plant` nor `controller` is a discrete model.*"
+                       "sample_time=0.5e-3"):
+        _call(stage, *small_data, sample_time=None, controller=None,
+              plant=stage.plant_continuous[0, 0])
+
+
+def test_sample_time_taken_from_plant_must_match_controller(stage, small_data):
+    plant = control.sample_system(stage.plant_continuous[0, 0], 1e-3)
+    with pytest.raises(ValueError, match=r"`controller` has dt=0.0005 s but "
+                       r"sample_time=0.001 s \(the dt of `plant`\)"):
+        _call(stage, *small_data, sample_time=None, plant=plant)
 
 
 def test_inputs_are_not_modified(stage, small_data):

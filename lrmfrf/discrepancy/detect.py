@@ -16,7 +16,7 @@ calibrated here by simulating the estimator on model-generated data
   ``c`` is measured from the run-to-run variance of band averages.
 
 With these, ``mean |w|^2`` is approximately ``Gamma(n_eff, 1/n_eff)``
-(global test) and the moving mean over ``window`` bins (the discrepancy
+(global test) and the moving mean over ``smoothing_bins`` bins (the discrepancy
 spectrum) approximately ``Gamma(a, 1/a)`` with ``a`` measured too; its
 maximum is tested with a Bonferroni correction over ``n_eff`` bins.
 """
@@ -31,6 +31,8 @@ import numpy as np
 import scipy.ndimage
 import scipy.stats
 from sklearn.base import clone
+
+from .._validation import renamed_keyword
 
 __all__ = [
     "Calibration",
@@ -60,9 +62,11 @@ class Calibration:
         Correlation inflation ``c >= 1``: ``K`` bins count as ``K / c``
         independent ones.
     spectrum_shape : float
-        Gamma shape ``a`` of the discrepancy spectrum (a ``window``-bin mean).
-    window : int
-        Bins in the discrepancy-spectrum moving average.
+        Gamma shape ``a`` of the discrepancy spectrum (a
+        ``smoothing_bins``-bin mean).
+    smoothing_bins : int
+        Bins in the discrepancy-spectrum moving average (called ``window``
+        before issue 12; ``window`` still reads it, with a FutureWarning).
     n_runs : int
         Simulated experiments used (0: not calibrated).
     null_gaps : ndarray of shape (n_runs,)
@@ -79,11 +83,21 @@ class Calibration:
     scale: np.ndarray
     inflation: float
     spectrum_shape: float
-    window: int
+    smoothing_bins: int
     n_runs: int
     null_gaps: np.ndarray
     method: str = "simulation"
     noise_scale: np.ndarray | None = None
+
+    @property
+    def window(self) -> int:
+        """Deprecated name of :attr:`smoothing_bins` (removed in the next release)."""
+        warnings.warn(
+            "`Calibration.window` was renamed to `smoothing_bins` (issue 12) and "
+            "will be removed in the next release. Use calibration.smoothing_bins.",
+            FutureWarning, stacklevel=2,
+        )
+        return self.smoothing_bins
 
     @property
     def std_scale(self) -> float:
@@ -123,24 +137,33 @@ class GlobalTest:
     significant: bool
 
 
-def discrepancy_spectrum(w2: np.ndarray, window: int) -> np.ndarray:
-    """Moving mean of ``|w|^2`` over ``window`` bins (edges: shorter windows).
+def discrepancy_spectrum(w2: np.ndarray, smoothing_bins: int | None = None, *,
+                         window: int | None = None) -> np.ndarray:
+    """Moving mean of ``|w|^2`` over ``smoothing_bins`` bins (edges: shorter).
 
     Parameters
     ----------
     w2 : ndarray of shape (..., K)
-    window : int
+    smoothing_bins : int
+        Width of the moving mean in bins.
+    window : int, optional
+        Deprecated name of ``smoothing_bins``.
 
     Returns
     -------
     ndarray of shape (..., K)
     """
+    width = renamed_keyword(smoothing_bins, window, new="smoothing_bins",
+                            old="window")
+    if width is None:
+        raise TypeError("discrepancy_spectrum() needs `smoothing_bins`, the "
+                        "width of the moving mean in bins, e.g. smoothing_bins=9.")
     w2 = np.asarray(w2, dtype=float)
-    if window <= 1:
+    if width <= 1:
         return w2.copy()
     ones = np.ones(w2.shape[-1])
-    total = scipy.ndimage.uniform_filter1d(w2, window, axis=-1, mode="constant")
-    count = scipy.ndimage.uniform_filter1d(ones, window, mode="constant")
+    total = scipy.ndimage.uniform_filter1d(w2, width, axis=-1, mode="constant")
+    count = scipy.ndimage.uniform_filter1d(ones, width, mode="constant")
     return total / count
 
 
@@ -169,7 +192,7 @@ def global_test(w2: np.ndarray, calibration: Calibration, alpha: float) -> Globa
     statistic = float(np.mean(w2))
     n_eff = n_effective(K, calibration)
     p_value = float(scipy.stats.gamma.sf(statistic * n_eff, n_eff))
-    spectrum = discrepancy_spectrum(w2, calibration.window)
+    spectrum = discrepancy_spectrum(w2, calibration.smoothing_bins)
     threshold = spectrum_threshold(K, calibration, alpha / 2)
     local = bool(np.any(spectrum > threshold))
     return GlobalTest(
@@ -195,15 +218,19 @@ def spectrum_threshold(n_bins: int, calibration: Calibration, alpha: float) -> f
     return float(scipy.stats.gamma.isf(alpha / n_tests, a) / a)
 
 
-def uncalibrated(n_bins: int, window: int = 9, inflation: float = 1.0) -> Calibration:
+def uncalibrated(n_bins: int, smoothing_bins: int = 9, inflation: float = 1.0, *,
+                 window: int | None = None) -> Calibration:
     """Calibration that trusts the estimator's std, no bias, given inflation.
 
     Used when simulation is switched off (``calibration_runs=0``); the tests
     are then only as good as the estimator's std and ``inflation``.
+    ``window`` is the deprecated name of ``smoothing_bins``.
     """
-    shape = max(window / max(inflation, 1.0), 1.0)
+    smoothing_bins = renamed_keyword(smoothing_bins, window, new="smoothing_bins",
+                                     old="window", default=9)
+    shape = max(smoothing_bins / max(inflation, 1.0), 1.0)
     return Calibration(np.zeros(n_bins, complex), np.ones(n_bins), float(inflation),
-                       float(shape), int(window), 0, np.zeros(0),
+                       float(shape), int(smoothing_bins), 0, np.zeros(0),
                        method="uncalibrated")
 
 
@@ -218,9 +245,10 @@ def calibrate(
     model_frf: np.ndarray,
     *,
     n_runs: int = 10,
-    window: int = 9,
+    smoothing_bins: int = 9,
     n_bands: int = 8,
     rng: np.random.Generator,
+    window: int | None = None,
 ) -> Calibration:
     """Calibrate the tests by fitting the estimator to model-generated data.
 
@@ -228,8 +256,8 @@ def calibrate(
     adds slow-rate noise with the measured noise spectrum, fits a clone of
     the estimator and compares its FRF with the model's. The mean error is
     the estimator bias, the RMS whitened error about it (smoothed over
-    ``2 window + 1`` bins) the std scale, and the run-to-run variance of band
-    means the correlation inflation.
+    ``2 smoothing_bins + 1`` bins) the std scale, and the run-to-run variance
+    of band means the correlation inflation.
 
     Parameters
     ----------
@@ -247,8 +275,12 @@ def calibrate(
         Fast bins (``0..N//2``) compared.
     model_frf : ndarray of shape (K,), complex
         Model FRF at ``bins``.
-    n_runs, window, n_bands : int
+    n_runs, smoothing_bins, n_bands : int
+        Simulated runs, width of the discrepancy-spectrum moving mean (bins)
+        and number of bands for the correlation inflation.
     rng : numpy.random.Generator
+    window : int, optional
+        Deprecated name of ``smoothing_bins`` (removed in the next release).
 
     Returns
     -------
@@ -256,6 +288,8 @@ def calibrate(
     """
     from ..simulate import simulate
 
+    width = renamed_keyword(smoothing_bins, window, new="smoothing_bins",
+                            old="window", default=9)
     P, N = u.shape
     M = N // F
     clean = np.stack([simulate(model_system, u[p], F).y_l_clean for p in range(P)])
@@ -286,7 +320,7 @@ def calibrate(
     correction = n_runs / max(n_runs - 1, 1)  # the bias was estimated
     variance = np.nanmean(w2, axis=0) * correction
     variance = np.where(np.isfinite(variance), variance, np.nanmedian(variance))
-    variance = scipy.ndimage.uniform_filter1d(variance, 2 * window + 1,
+    variance = scipy.ndimage.uniform_filter1d(variance, 2 * width + 1,
                                               mode="nearest")
     variance = np.maximum(variance, 0.25)
     # the bias is treated as error (it depends on the model, so it is not
@@ -298,17 +332,17 @@ def calibrate(
         w2 = np.where(finite, np.abs(errors) ** 2 / stds**2, np.nan)
     z2 = np.where(np.isfinite(w2), w2 / scale2, 1.0)
     inflation = _inflation(z2, n_bands)
-    spectra = discrepancy_spectrum(z2, window)
+    spectra = discrepancy_spectrum(z2, width)
     var = float(np.mean(np.var(spectra, axis=0, ddof=1)))
     mean = float(np.mean(spectra))
-    shape = float(np.clip(mean**2 / var, 1.0, window)) if var > 0 else float(window)
+    shape = float(np.clip(mean**2 / var, 1.0, width)) if var > 0 else float(width)
     return Calibration(
         bias=bias,
         scale=np.sqrt(scale2),
         noise_scale=np.sqrt(variance * (1.0 + 1.0 / n_runs)),
         inflation=inflation,
         spectrum_shape=shape,
-        window=int(window),
+        smoothing_bins=int(width),
         n_runs=int(n_runs),
         null_gaps=np.sqrt(np.mean(z2, axis=1)),
     )

@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from .._validation import renamed_keyword
 
 __all__ = ["Finding", "DiagnosisReport"]
 
@@ -110,6 +113,11 @@ class DiagnosisReport:
         Null behaviour of the estimator at the original and the updated model.
     settings : dict
         ``alpha``, ``ic_margin``, ``max_effects`` and calibration settings.
+    skipped_candidates : list of str
+        Labels of the candidate models (single effects or joint refits) the
+        search skipped because their closed loop with the controller is
+        unstable, so they cannot have produced the data; one entry per skip.
+        Empty in open loop.
     """
 
     findings: list
@@ -133,6 +141,7 @@ class DiagnosisReport:
     calibration: object = None
     calibration_after: object = None
     settings: dict = field(default_factory=dict)
+    skipped_candidates: list = field(default_factory=list)
 
     @property
     def effects(self) -> list[str]:
@@ -152,6 +161,13 @@ class DiagnosisReport:
             f"(p = {self.p_value_before:.2g}), after {self.gap_after:.3g} "
             f"(p = {self.p_value_after:.2g}); about 1 = agreement within noise"
         )
+        if self.skipped_candidates:
+            labels = sorted(set(self.skipped_candidates))
+            lines.append(
+                f"  skipped: {len(self.skipped_candidates)} candidate model(s) whose "
+                "closed loop with the controller is unstable (" + ", ".join(labels)
+                + ")"
+            )
         if not self.findings:
             lines.append("  no significant discrepancy: the model agrees with the "
                          "measurement within noise.")
@@ -186,58 +202,144 @@ class DiagnosisReport:
             "n_bins": int(self.frequencies.size),
             "calibration": _calibration_dict(self.calibration),
             "settings": _plain(self.settings),
+            "skipped_candidates": list(self.skipped_candidates),
         }
 
-    def plot(self, *, axes=None):
-        """Bode plot with the +/-2 std band and the discrepancy spectra.
+    def plot(self, *, ax=None, units: str | None = None, axes=None):
+        """Bode plot with the +/-2 std band, and the discrepancy spectra.
+
+        Magnitude in dB, phase unwrapped (continuous, in degrees; the measured
+        points are placed within 180 degrees of the updated model), and the
+        discrepancy spectrum before and after with its thresholds. The slow
+        Nyquist frequency is the dotted vertical line (labelled in the legend).
 
         Parameters
         ----------
+        ax : sequence of 3 matplotlib Axes, optional
+            Magnitude, phase and discrepancy axes; created (sharing the
+            frequency axis) if not given.
+        units : str, optional
+            Units of the plant (e.g. ``"m/N"``): the magnitude axis then reads
+            "Magnitude [dB re 1 m/N]", else "Magnitude [dB]".
         axes : sequence of 3 matplotlib Axes, optional
-            Magnitude, phase and discrepancy axes; created if not given.
+            Deprecated name of ``ax`` (removed in the next release).
 
         Returns
         -------
-        dict
-            ``{"figure", "axes"}`` plus the drawn line objects by name.
-        """
-        import matplotlib.pyplot as plt
+        fig : matplotlib.figure.Figure
+        axes : ndarray of shape (3,) of matplotlib Axes
+            Magnitude, phase and discrepancy axes.
 
-        if axes is None:
-            fig, axes = plt.subplots(3, 1, figsize=(8, 9), sharex=True)
-        else:
-            fig = axes[0].figure
-        f = self.frequencies
+        Notes
+        -----
+        Before issue 12 this returned a dict ``{"figure", "axes", ...}``; the
+        returned pair still answers ``result["figure"]`` and the other old
+        keys for one release, with a ``FutureWarning``.
+        """
+        ax = renamed_keyword(ax, axes, new="ax", old="axes")
+        fig, axes = _diagnosis_axes(ax)
         mag, phase, disc = axes
+        f = self.frequencies
+        drawn = {}
         meas = np.abs(self.measured)
         low = np.maximum(meas - 2 * self.std, meas * 1e-3)
-        drawn = {}
-        drawn["band"] = mag.fill_between(f, low, meas + 2 * self.std, color="0.8",
-                                         label="measurement +/- 2 std")
-        (drawn["measured"],) = mag.loglog(f, meas, "k.", ms=2, label="measurement")
-        (drawn["before"],) = mag.loglog(f, np.abs(self.model_before), "C0",
-                                        label="model")
-        (drawn["after"],) = mag.loglog(f, np.abs(self.model_after), "C3--",
-                                       label="updated model")
-        mag.set_ylabel("magnitude")
-        phase.semilogx(f, np.degrees(np.angle(self.measured)), "k.", ms=2)
-        phase.semilogx(f, np.degrees(np.angle(self.model_before)), "C0")
-        phase.semilogx(f, np.degrees(np.angle(self.model_after)), "C3--")
-        phase.set_ylabel("phase (deg)")
-        disc.semilogy(f, self.spectrum_before, "C0", label="before")
-        disc.semilogy(f, self.spectrum_after, "C3", label="after")
-        disc.axhline(self.threshold_before, color="C0", ls=":", label="threshold")
-        disc.axhline(self.threshold_after, color="C3", ls=":")
-        disc.set_ylabel("discrepancy")
-        disc.set_xlabel("frequency (Hz)")
-        for ax in axes:
-            ax.axvline(self.slow_nyquist, color="0.5", ls="-.", lw=1)
+        drawn["band"] = mag.fill_between(f, _db(low), _db(meas + 2 * self.std),
+                                         color="0.8", label="measurement ± 2 std")
+        (drawn["measured"],) = mag.plot(f, _db(meas), "k.", ms=2,
+                                        label="measurement")
+        (drawn["before"],) = mag.plot(f, _db(np.abs(self.model_before)), "C0",
+                                      label="model")
+        (drawn["after"],) = mag.plot(f, _db(np.abs(self.model_after)), "C3--",
+                                     label="updated model")
+        curves = np.concatenate([_db(meas), _db(np.abs(self.model_before)),
+                                 _db(np.abs(self.model_after))])
+        curves = curves[np.isfinite(curves)]
+        if curves.size:  # the band's lower edge can dive far below the data
+            mag.set_ylim(bottom=curves.min() - 20.0)
+        reference = np.degrees(np.unwrap(np.angle(self.model_after)))
+        before = _shifted_to(np.degrees(np.unwrap(np.angle(self.model_before))),
+                             reference[0])
+        phase.plot(f, _nearest_branch(np.degrees(np.angle(self.measured)),
+                                      reference), "k.", ms=2)
+        phase.plot(f, before, "C0")
+        phase.plot(f, reference, "C3--")
+        disc.plot(f, self.spectrum_before, "C0", label="before")
+        disc.plot(f, self.spectrum_after, "C3", label="after")
+        disc.axhline(self.threshold_before, color="C0", ls=":",
+                     label="threshold before")
+        disc.axhline(self.threshold_after, color="C3", ls=":",
+                     label="threshold after")
+        disc.set_yscale("log")
+        for axis in axes:
+            axis.axvline(self.slow_nyquist, color="0.3", ls=":", lw=1.2,
+                         label=f"slow Nyquist {self.slow_nyquist:.4g} Hz"
+                         if axis is mag else None)
+            axis.set_xscale("log")
+            axis.grid(True, which="major", alpha=0.4)
+        mag.set_ylabel(f"Magnitude [dB re 1 {units}]" if units else "Magnitude [dB]")
+        phase.set_ylabel("Phase [deg]")
+        disc.set_ylabel("Discrepancy [whitened |ΔG|²]")
+        disc.set_xlabel("Frequency [Hz]")
         mag.legend(loc="best", fontsize="small")
         disc.legend(loc="best", fontsize="small")
         names = ", ".join(self.effects) or "no findings"
         mag.set_title(f"Diagnosis: {names}")
         drawn.update(figure=fig, axes=list(axes))
-        return drawn
+        return _PlotResult(fig, axes, drawn)
+
+
+class _PlotResult(tuple):
+    """``(fig, axes)``; the old dict keys still work for one release (warning)."""
+
+    def __new__(cls, fig, axes, drawn):
+        result = super().__new__(cls, (fig, axes))
+        result._drawn = drawn
+        return result
+
+    def __getitem__(self, key):
+        if isinstance(key, str):
+            warnings.warn(
+                "DiagnosisReport.plot() now returns (fig, axes) (issue 12); indexing "
+                f"the result with {key!r} will stop working in the next release. "
+                "Use fig, axes = report.plot().",
+                FutureWarning, stacklevel=2,
+            )
+            return self._drawn[key]
+        return super().__getitem__(key)
+
+
+def _diagnosis_axes(ax):
+    if ax is None:
+        import matplotlib.pyplot as plt
+
+        fig, axes = plt.subplots(3, 1, figsize=(8, 9), sharex=True,
+                                 layout="constrained")
+        return fig, np.asarray(axes)
+    try:
+        axes = np.asarray(list(ax), dtype=object)
+    except TypeError:
+        axes = np.asarray([ax], dtype=object)
+    if axes.size != 3:
+        raise ValueError(
+            f"`ax` must be three Axes (magnitude, phase, discrepancy). Got "
+            f"{axes.size}. Create them with fig.subplots(3, 1, sharex=True)."
+        )
+    return axes[0].figure, axes
+
+
+def _db(magnitude: np.ndarray) -> np.ndarray:
+    with np.errstate(divide="ignore"):
+        return 20.0 * np.log10(magnitude)
+
+
+def _shifted_to(phase: np.ndarray, target: float) -> np.ndarray:
+    """``phase`` moved by a whole number of turns to start near ``target`` (deg)."""
+    return phase - 360.0 * np.round((phase[0] - target) / 360.0)
+
+
+def _nearest_branch(phase: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """Each phase (deg) moved by whole turns to within 180 deg of the reference."""
+    return phase - 360.0 * np.round((phase - reference) / 360.0)
 
 
 def _calibration_dict(calibration) -> dict | None:
@@ -249,7 +351,7 @@ def _calibration_dict(calibration) -> dict | None:
         "std_scale_rms": _plain(calibration.std_scale),
         "inflation": _plain(calibration.inflation),
         "spectrum_shape": _plain(calibration.spectrum_shape),
-        "window": calibration.window,
+        "smoothing_bins": calibration.smoothing_bins,
     }
 
 
