@@ -142,23 +142,11 @@ def test_diagnose_passes_the_new_names(plain_data, capsys, monkeypatch):
         "diagnosis.json", "diagnosis.txt"]
 
 
-def test_diagnose_before_the_rename(plain_data, capsys, monkeypatch):
-    calls = []
-    _stub(monkeypatch, "sample_time, random_state=None, window=9", calls)
-    status, _, err = _main(["diagnose", plain_data / "model.py",
-                            plain_data / "plain.npz", "--F", "3", "--sample-time",
-                            "1e-3", "--smoothing-bins", "5", "--no-plot", "--out",
-                            plain_data / "o"], capsys)
-    assert status == 0, err
-    assert calls[0]["random_state"] == 0 and calls[0]["window"] == 5
-    assert calls[0]["sample_time"] == 1e-3
-
-
 def test_diagnose_needs_a_sample_time_from_somewhere(plain_data, capsys,
                                                      monkeypatch):
     (plain_data / "ct.py").write_text("import control\n"
                                       "plant = control.tf([1], [1, 1])\n")
-    _stub(monkeypatch, "sample_time, random_state=None", [])
+    _stub(monkeypatch, "sample_time=None, rng=None", [])
     status, out, err = _main(["diagnose", plain_data / "ct.py",
                               plain_data / "plain.npz", "--F", "3", "--out",
                               plain_data / "o"], capsys)

@@ -6,7 +6,6 @@ together with :func:`lrmfrf.io.atomic_group` (all or nothing).
 
 from __future__ import annotations
 
-import inspect
 import json
 from pathlib import Path
 
@@ -98,7 +97,7 @@ def run(args, parser) -> int:
     outputs = [args.out / name for name in DIAGNOSE_OUTPUTS]
     for path in outputs:
         check_output_path(path, overwrite=args.force, protect=protect)
-    keywords = _diagnose_keywords(diagnose, args, data, plant)
+    keywords = _diagnose_keywords(args, data, plant, controller)
     try:
         report = diagnose(plant, data.u_h, data.y_l, data.downsampling_factor,
                           controller=controller, **keywords)
@@ -117,26 +116,23 @@ def run(args, parser) -> int:
     return 0
 
 
-def _diagnose_keywords(diagnose, args, data, plant) -> dict:
-    """``diagnose``'s keywords, under the names its signature has (the seed is
-    ``rng`` after issue 12, ``random_state`` before; the smoothing width
-    ``smoothing_bins``, ``window`` before)."""
-    params = inspect.signature(diagnose).parameters
-    keywords = {"rng" if "rng" in params else "random_state": args.seed}
+def _diagnose_keywords(args, data, plant, controller) -> dict:
+    """``diagnose``'s keywords: the seed, the smoothing width and the sample
+    time (from the file, else from the model's or the controller's ``dt``)."""
+    keywords = {"rng": args.seed}
     if args.smoothing_bins is not None:
-        name = "smoothing_bins" if "smoothing_bins" in params else "window"
-        keywords[name] = args.smoothing_bins
+        keywords["smoothing_bins"] = args.smoothing_bins
     sample_time = data.sample_time
+    for model in (plant, controller):
+        if sample_time is None:
+            sample_time = _model_sample_time(model)
     if sample_time is None:
-        sample_time = _model_sample_time(plant)
-    if sample_time is not None:
-        keywords["sample_time"] = sample_time
-    elif params["sample_time"].default is inspect.Parameter.empty:
         raise CLIUsageError(
             f"{args.data}: neither the file nor the model ({args.model}) gives "
             "the sample time, so --sample-time is required. Pass --sample-time "
             "SECONDS, or a discrete-time plant (dt > 0)."
         )
+    keywords["sample_time"] = sample_time
     return keywords
 
 
@@ -154,8 +150,7 @@ def _figure_png(report) -> bytes:
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    drawn = report.plot()
-    figure = drawn["figure"] if isinstance(drawn, dict) else drawn[0]
+    figure, _ = report.plot()
     try:
         return png_bytes(figure, dpi=110)
     finally:

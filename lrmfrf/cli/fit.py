@@ -8,7 +8,6 @@ failure leaves none of them.
 
 from __future__ import annotations
 
-import inspect
 import platform
 import shlex
 import sys
@@ -282,12 +281,7 @@ def make_estimator(method: str, settings: dict, select: str | None = None):
         from ..estimators import selection
 
         return getattr(selection, SELECT_NAMES[method])(criterion=select)
-    cls = getattr(estimators, METHOD_NAMES[method])
-    settings = dict(settings)
-    params = inspect.signature(cls).parameters
-    if "num_degree" in settings and "num_degree" not in params:
-        settings["degree"] = settings.pop("num_degree")  # LPM before its rename
-    return cls(**settings)
+    return getattr(estimators, METHOD_NAMES[method])(**settings)
 
 
 def _check_finite(job: _Job, table: dict) -> None:
