@@ -477,3 +477,13 @@ def test_fitted_cv_pickles_with_its_results():
     np.testing.assert_array_equal(again.predict(u), cv.predict(u))
     with pytest.warns(FutureWarning):
         again.cv_results_["rank_test_score"]
+
+
+def test_docstring_examples_run():
+    import doctest
+
+    import lrmfrf.estimators.selection as module
+
+    result = doctest.testmod(module, optionflags=doctest.NORMALIZE_WHITESPACE)
+    assert result.attempted > 0
+    assert result.failed == 0
