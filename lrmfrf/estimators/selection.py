@@ -332,7 +332,8 @@ class _CVResults(dict):
         new, value = self._DEPRECATED[key]
         warnings.warn(
             f"cv_results_[{key!r}] is deprecated and will be removed in the next "
-            f"release: it held no held-out score. Use {new} instead.",
+            "release: the candidates are ranked by an in-sample criterion, no "
+            f"held-out test score is computed. Use {new} instead.",
             FutureWarning,
             stacklevel=2,
         )
