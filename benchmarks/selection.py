@@ -44,6 +44,7 @@ held-out R^2 over the candidates, against the spread of their true errors.
 
 Run:  python3 benchmarks/selection.py [--realisations 50] [--n-jobs 2]
       python3 benchmarks/selection.py --heldout [--seeds 10] [--n-jobs 2]
+      (the held-out study: about 1 min per seed and system on one core)
 Writes benchmarks/results/selection.csv (one row per candidate and system),
 benchmarks/results/selection_experiments.csv and, with ``--heldout``,
 benchmarks/results/selection_heldout.csv (one row per seed and system).
