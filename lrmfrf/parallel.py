@@ -48,10 +48,16 @@ arrays are ``O(N)``), so the traffic per task is small compared with the
 
 from __future__ import annotations
 
+import numbers
+import warnings
 from collections.abc import Sequence
 
+import numpy as np
 from joblib import Parallel, delayed
 from sklearn.base import BaseEstimator, clone
+
+from ._validation import check_bool
+from .progress import progress
 
 __all__ = ["fit_many"]
 
@@ -68,7 +74,7 @@ def fit_many(
     *,
     n_jobs: int | None = None,
     backend: str | None = None,
-    verbose: int = 0,
+    verbose: bool = False,
     **fit_params,
 ) -> list:
     """Fit a clone of ``estimator`` to each of many independent data sets.
@@ -92,8 +98,11 @@ def fit_many(
     backend : str or None, default=None
         joblib backend ("loky", "threading", "dask", ...). ``None`` uses the
         active ``joblib.parallel_config`` (or loky).
-    verbose : int, default=0
-        joblib's progress messages (written by joblib to stderr), 0 for none.
+    verbose : bool, default=False
+        Show a progress bar over the data sets as their fits finish (as the
+        estimators' ``verbose``; see :mod:`lrmfrf.progress`, needs tqdm).
+        Integers, joblib's verbosity in earlier releases, are deprecated: ``0``
+        means ``False`` and ``> 0`` means ``True``, with a ``FutureWarning``.
     **fit_params
         Passed to each ``fit``, e.g. ``sample_time=0.5e-3``.
 
@@ -115,6 +124,7 @@ def fit_many(
     >>> len(fits), fits[0].frf_.shape
     (3, (301,))
     """
+    verbose = _check_verbose(verbose)
     if not hasattr(estimator, "fit") or not hasattr(estimator, "get_params"):
         raise TypeError(
             "`estimator` must be a scikit-learn style estimator with fit and "
@@ -135,7 +145,27 @@ def fit_many(
         delayed(_fit_one)(clone(estimator), u, y, F, fit_params)
         for u, y in zip(U_records, Y_records, strict=True)
     )
-    return list(Parallel(n_jobs=n_jobs, backend=backend, verbose=verbose)(tasks))
+    if not verbose:
+        return list(Parallel(n_jobs=n_jobs, backend=backend)(tasks))
+    # Results in order as they become available, so the bar advances.
+    fits = Parallel(n_jobs=n_jobs, backend=backend, return_as="generator")(tasks)
+    return list(progress(fits, enabled=True, total=len(U_records), desc="fits"))
+
+
+def _check_verbose(verbose) -> bool:
+    """``verbose`` as a bool; joblib-style integers are deprecated."""
+    if isinstance(verbose, (bool, np.bool_)):
+        return bool(verbose)
+    if isinstance(verbose, numbers.Integral):
+        warnings.warn(
+            f"fit_many(verbose={verbose!r}): an integer verbosity (joblib's) is "
+            "deprecated and will be refused in the next release; `verbose` is a "
+            f"bool that shows a progress bar. Pass verbose={bool(verbose > 0)}.",
+            FutureWarning,
+            stacklevel=3,
+        )
+        return bool(verbose > 0)
+    return check_bool(verbose, "verbose")  # raises: the common message
 
 
 def _as_sequence(records, name: str):

@@ -128,3 +128,55 @@ def test_grid_search_and_batch_on_a_dask_cluster():
     _assert_same_fits(batch, serial_batch)
     np.testing.assert_array_equal(cv.cv_results_["criterion"],
                                   serial_cv.cv_results_["criterion"])
+
+
+def test_fit_many_verbose_is_a_progress_bar(capsys):
+    """verbose=True shows lrmfrf's progress bar (tqdm) over the data sets;
+    False shows nothing; the fits are the same either way."""
+    pytest.importorskip("tqdm")
+    rng = np.random.default_rng(6)
+    u, y = _records(3, rng)
+    quiet = fit_many(LRMBeyondNyquist(**SMALL), u, y, F)
+    assert capsys.readouterr().err == ""
+    shown = fit_many(LRMBeyondNyquist(**SMALL), u, y, F, verbose=True)
+    err = capsys.readouterr().err
+    assert "fits" in err and "3/3" in err
+    _assert_same_fits(quiet, shown)
+    with joblib.parallel_config(backend="threading"):
+        threaded = fit_many(LRMBeyondNyquist(**SMALL), u, y, F, n_jobs=2,
+                            verbose=True)
+    assert "3/3" in capsys.readouterr().err
+    _assert_same_fits(quiet, threaded)  # in the order of the records
+
+
+@pytest.mark.parametrize("old, shows_bar", [(0, False), (1, True), (10, True)])
+def test_fit_many_integer_verbose_is_deprecated(capsys, old, shows_bar):
+    """joblib-style integers keep working for one release: 0 -> False,
+    > 0 -> True, with a FutureWarning that names the bool to pass."""
+    pytest.importorskip("tqdm")
+    rng = np.random.default_rng(7)
+    u, y = _records(2, rng)
+    with pytest.warns(FutureWarning, match=rf"verbose={old}\): an integer "
+                      rf"verbosity .* is deprecated.*Pass verbose={shows_bar}"):
+        fits = fit_many(LRMBeyondNyquist(**SMALL), u, y, F, verbose=old)
+    assert ("2/2" in capsys.readouterr().err) == shows_bar
+    assert len(fits) == 2
+
+
+def test_fit_many_rejects_a_verbose_that_is_not_a_bool():
+    rng = np.random.default_rng(8)
+    u, y = _records(2, rng)
+    with pytest.raises(TypeError, match="`verbose` must be True or False. Got "
+                                        "'yes'"):
+        fit_many(LRMBeyondNyquist(**SMALL), u, y, F, verbose="yes")
+
+
+def test_docstring_examples_run():
+    import doctest
+
+    import lrmfrf.parallel
+
+    result = doctest.testmod(lrmfrf.parallel,
+                             optionflags=doctest.NORMALIZE_WHITESPACE)
+    assert result.attempted > 0
+    assert result.failed == 0

@@ -367,3 +367,113 @@ def test_freq_range_zooms_and_keeps_the_global_phase():
     assert low >= -360 * 500 * TS * 3 - 45 - 100 and high <= -360 * 400 * TS * 3 + 145
     with pytest.raises(ValueError, match="freq_range must be two frequencies"):
         plot_frf((f, G), freq_range=(500.0, 400.0))
+
+
+# --------------------------------------------------------------------------
+# One convention: several FRFs as arguments, one list or one mapping
+# --------------------------------------------------------------------------
+
+
+def _magnitudes(axis):
+    return [(line.get_label(), line.get_ydata()) for line in axis.get_lines()
+            if not line.get_label().startswith(("slow Nyquist", "_"))]
+
+
+def test_plot_frf_accepts_a_list_and_a_mapping(fitted):
+    """plot_frf([a, b]) and plot_frf({"LRM": a, "scaled": b}) draw what
+    plot_frf(a, b) draws; a mapping's keys are the legend labels."""
+    f = fitted.frequencies_
+    other = (f, 1.1 * fitted.frf_)
+    _, separate = plot_frf(fitted, other, labels=["LRM", "scaled"])
+    _, listed = plot_frf([fitted, other], labels=["LRM", "scaled"])
+    _, mapped = plot_frf({"LRM": fitted, "scaled": other})
+    _, tupled = plot_frf((fitted, fitted), labels=["a", "b"])  # estimators
+    expected = _magnitudes(separate[0])
+    assert [label for label, _ in expected] == ["LRM", "scaled"]
+    for axes in (listed, mapped):
+        got = _magnitudes(axes[0])
+        assert [label for label, _ in got] == ["LRM", "scaled"]
+        for (_, y), (_, y_expected) in zip(got, expected, strict=True):
+            np.testing.assert_array_equal(y, y_expected)
+        legend = [t.get_text() for t in axes[0].get_legend().get_texts()]
+        assert legend[:2] == ["LRM", "scaled"]
+    assert [label for label, _ in _magnitudes(tupled[0])] == ["a", "b"]
+    # Default labels of a list: the class names, as for separate arguments.
+    _, axes = plot_frf([fitted])
+    assert _magnitudes(axes[0])[0][0] == "LRMBeyondNyquist"
+
+
+def test_plot_error_accepts_a_list_and_a_mapping(fitted):
+    from conftest import resonant_system
+
+    b, a = resonant_system()
+    G = frf_of(b, a, 600)
+    _, separate = plot_error(G, fitted, fitted, labels=["x", "y"])
+    _, listed = plot_error(G, [fitted, fitted], labels=["x", "y"])
+    _, mapped = plot_error(G, {"x": fitted, "y": fitted})
+    expected = _magnitudes(separate)
+    for ax in (listed, mapped):
+        got = _magnitudes(ax)
+        assert [label for label, _ in got] == ["x", "y"]
+        for (_, y), (_, y_expected) in zip(got, expected, strict=True):
+            np.testing.assert_array_equal(y, y_expected)
+    # A list of numbers is still one array estimate, a list of arrays several.
+    f = np.linspace(0, 100, 11)
+    G = np.full(11, 2.0 + 0j)
+    _, ax = plot_error(G, list(1.1 * G), frequencies=f, kind="relative",
+                       slow_nyquist=False)
+    assert len(_magnitudes(ax)) == 1
+    np.testing.assert_allclose(ax.get_lines()[0].get_ydata(), 0.1, rtol=1e-12)
+    _, ax = plot_error(G, [1.1 * G, 1.2 * G], frequencies=f, kind="relative",
+                       slow_nyquist=False)
+    np.testing.assert_allclose([line.get_ydata()[0] for line in ax.get_lines()],
+                               [0.1, 0.2], rtol=1e-12)
+
+
+def test_collections_bad_arguments(fitted):
+    with pytest.raises(ValueError, match="takes its labels from its keys"):
+        plot_frf({"LRM": fitted}, labels=["x"])
+    with pytest.raises(TypeError, match="Got a list of FRFs and 1 more positional"):
+        plot_frf([fitted], fitted)
+    with pytest.raises(TypeError, match="Got a dict of estimates and 1 more"):
+        plot_error(np.ones(3), fitted, {"a": fitted})
+    with pytest.raises(ValueError, match="Nothing to draw: pass at least one FRF"):
+        plot_frf([])
+    with pytest.raises(ValueError, match="at least one estimate"):
+        plot_error(np.ones(3), {})
+    with pytest.raises(ValueError, match="1 labels for 2 FRFs"):
+        plot_frf([fitted, fitted], labels=["a"])
+    with pytest.raises(TypeError, match="Cannot plot an object of type str"):
+        plot_frf([fitted, "frf"])
+
+
+def test_package_layout_keeps_the_public_names():
+    """plotting is a package: curve normalisation (no matplotlib) and drawing
+    in two modules; the public names import from lrmfrf.plotting as before."""
+    import lrmfrf.plotting as plotting
+    from lrmfrf.plotting import FRFCurve, _curves, _draw
+
+    assert plotting.plot_frf is _draw.plot_frf
+    assert plotting.plot_error is _draw.plot_error
+    assert plotting.frf_curve is _curves.frf_curve
+    assert FRFCurve is _curves.FRFCurve
+    assert sorted(plotting.__all__) == ["FRFCurve", "frf_curve", "plot_error",
+                                        "plot_frf"]
+
+
+def test_curves_module_does_not_need_matplotlib(monkeypatch, fitted):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    monkeypatch.setitem(sys.modules, "matplotlib.pyplot", None)
+    curve = frf_curve(fitted)
+    assert curve.slow_nyquist == pytest.approx(1 / (2 * 3 * 0.5e-3))
+
+
+@pytest.mark.parametrize("module", ["lrmfrf.plotting._draw"])
+def test_docstring_examples_run(module):
+    import doctest
+    import importlib
+
+    result = doctest.testmod(importlib.import_module(module),
+                             optionflags=doctest.NORMALIZE_WHITESPACE)
+    assert result.attempted > 0
+    assert result.failed == 0

@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+import pickle
 import warnings
 
 import control
 import joblib
 import numpy as np
 import pytest
+import sklearn
 from conftest import frf_of, resonant_system, simulate_resonant
 from sklearn.base import clone
+from sklearn.utils import estimator_checks as checks
+from test_estimators import SKLEARN_CHECKS_NOT_APPLICABLE, SKLEARN_CHECKS_RUN
 
 from lrmfrf import LPMBeyondNyquist, LRMBeyondNyquist, multisine
 from lrmfrf.estimators.selection import (
@@ -127,20 +131,54 @@ def test_cv_results_structure_and_best_candidate():
     assert len(results["params"]) == n_candidates
     for key in ("param_half_window", "param_num_degree", "param_transient_degree",
                 "param_den_degree", "n_params", "dof", "identifiable",
-                "n_invalid_bins", "criterion", "mean_test_score", "rank_test_score"):
+                "n_invalid_bins", "criterion", "rank"):
         assert results[key].shape == (n_candidates,), key
+    # No key pretends to be a held-out score.
+    assert not [key for key in results if "test" in key or "score" in key]
     # R_t = R_g when transient_degrees is None.
     assert all(p["transient_degree"] == p["num_degree"] for p in results["params"])
-    np.testing.assert_array_equal(results["mean_test_score"], -results["criterion"])
-    assert sorted(results["rank_test_score"]) == list(range(1, n_candidates + 1))
-    assert results["rank_test_score"][cv.best_index_] == 1
+    assert sorted(results["rank"]) == list(range(1, n_candidates + 1))
+    assert results["rank"][cv.best_index_] == 1
     assert cv.best_params_ == results["params"][cv.best_index_]
-    assert cv.best_score_ == np.max(results["mean_test_score"])
+    # The best has the lowest criterion of those with the fewest invalid bins.
+    fewest = results["n_invalid_bins"] == results["n_invalid_bins"].min()
+    assert cv.best_criterion_ == np.min(results["criterion"][fewest])
     # The criterion of each candidate is the standalone function's value.
     layout = LocalModelLayout(F=F, **cv.best_params_)
-    assert -cv.best_score_ == pytest.approx(
+    assert cv.best_criterion_ == pytest.approx(
         local_model_criterion(*_dfts(u, y), layout, criterion="aicc").value,
         rel=1e-12)
+
+
+@pytest.mark.parametrize("CV", [LRMBeyondNyquistCV, LPMBeyondNyquistCV])
+def test_old_score_names_warn_and_keep_their_values(CV):
+    """best_score_ and cv_results_["mean_test_score"/"rank_test_score"] were a
+    negated criterion, not held-out scores: kept one release with a
+    FutureWarning, with their old values."""
+    rng = np.random.default_rng(18)
+    u, y = _data(rng)
+    cv = CV(half_windows=(8, 12)).fit(u, y, F)
+    assert "best_score_" not in vars(cv)
+    with pytest.warns(FutureWarning, match="`best_score_` is deprecated.*Use "
+                                           "`best_criterion_`"):
+        assert cv.best_score_ == -cv.best_criterion_
+    results = cv.cv_results_
+    with pytest.warns(FutureWarning, match=r"cv_results_\['mean_test_score'\] is "
+                                           "deprecated.*criterion"):
+        np.testing.assert_array_equal(results["mean_test_score"],
+                                      -results["criterion"])
+    with pytest.warns(FutureWarning, match=r"cv_results_\['rank_test_score'\] is "
+                                           r"deprecated.*cv_results_\['rank'\]"):
+        np.testing.assert_array_equal(results["rank_test_score"], results["rank"])
+    # Hidden from listings, and other keys are still missing.
+    assert "mean_test_score" not in results and "rank_test_score" not in list(
+        results)
+    with pytest.raises(KeyError, match="no_such_key"):
+        results["no_such_key"]
+    # An unfitted estimator has no best_score_ (hasattr is False, no warning).
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert not hasattr(CV(), "best_score_")
 
 
 def test_refit_is_the_plain_estimator_with_best_params():
@@ -247,7 +285,7 @@ def test_infeasible_candidates_are_reported_and_ranked_last():
                             den_degrees=(4,)).fit(u, y, F)
     results = cv.cv_results_
     assert list(results["identifiable"]) == [False, True]
-    assert results["criterion"][0] == np.inf and results["rank_test_score"][0] == 2
+    assert results["criterion"][0] == np.inf and results["rank"][0] == 2
     assert cv.best_params_["half_window"] == 12
 
 
@@ -339,3 +377,113 @@ def test_unequal_records_and_mismatched_experiments_are_rejected():
         LRMBeyondNyquistCV(**SMALL_GRID).fit([u[0], u[1][:-3]], list(y), F)
     with pytest.raises(ValueError, match="u_h holds 2 experiment.*y_l holds 1"):
         LRMBeyondNyquistCV(**SMALL_GRID).fit(u, y[:1], F)
+
+
+# --- scikit-learn contract and declared parameter checks -------------------------
+
+CV_ESTIMATORS = [LRMBeyondNyquistCV, LPMBeyondNyquistCV]
+
+
+@pytest.mark.parametrize("CV", CV_ESTIMATORS)
+@pytest.mark.parametrize("name", SKLEARN_CHECKS_RUN)
+def test_sklearn_checks(CV, name):
+    """The checks that apply to estimators of signals (the lists and their
+    reasons are those of tests/test_estimators.py)."""
+    check = getattr(checks, name, None)
+    if check is None:
+        pytest.skip(f"{name} is not in scikit-learn {sklearn.__version__}")
+    check(CV.__name__, CV())
+
+
+@pytest.mark.skipif(not hasattr(checks, "estimator_checks_generator"),
+                    reason="check_estimator(expected_failed_checks=) needs "
+                    "scikit-learn >= 1.6")
+@pytest.mark.parametrize("CV", CV_ESTIMATORS)
+def test_sklearn_check_estimator_lists_are_complete(CV):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        results = checks.check_estimator(
+            CV(), expected_failed_checks=SKLEARN_CHECKS_NOT_APPLICABLE,
+            on_fail=None, on_skip=None,
+        )
+    status = {}
+    for result in results:
+        status.setdefault(result["check_name"], set()).add(result["status"])
+    unknown = set(status) - set(SKLEARN_CHECKS_RUN) - set(
+        SKLEARN_CHECKS_NOT_APPLICABLE) - {"check_array_api_input"}  # skipped
+    assert not unknown, f"new scikit-learn checks to classify: {sorted(unknown)}"
+    for name in SKLEARN_CHECKS_RUN:
+        if name in status:
+            assert status[name] == {"passed"}, (name, status[name])
+    for name in SKLEARN_CHECKS_NOT_APPLICABLE:
+        if name in status:
+            assert status[name] == {"xfail"}, (name, status[name])
+
+
+@pytest.mark.parametrize("CV", CV_ESTIMATORS)
+def test_every_parameter_has_one_declared_check(CV):
+    assert set(CV._parameter_checks) == set(CV().get_params())
+
+
+@pytest.mark.parametrize("CV, params, exc, match", [
+    (LRMBeyondNyquistCV, {"criterion": "loo"}, ValueError,
+     r"`criterion` must be one of \('aicc', 'gcv', 'press'\). Got 'loo'"),
+    (LRMBeyondNyquistCV, {"half_windows": (12, 0)}, ValueError,
+     r"`half_windows\[1\]` must be an integer >= 1. Got 0"),
+    (LRMBeyondNyquistCV, {"num_degrees": "24"}, TypeError,
+     "`num_degrees` must be a sequence of integers. Got '24'"),
+    (LRMBeyondNyquistCV, {"transient_degrees": (1.5,)}, TypeError,
+     r"`transient_degrees\[0\]` must be an integer"),
+    (LRMBeyondNyquistCV, {"den_degrees": ()}, ValueError,
+     "grid is empty: `den_degrees` has no values"),
+    (LRMBeyondNyquistCV, {"n_jobs": 0}, ValueError,
+     "`n_jobs` must be None or a non-zero integer. Got 0"),
+    (LRMBeyondNyquistCV, {"verbose": "yes"}, TypeError,
+     "`verbose` must be True or False. Got 'yes'"),
+    (LPMBeyondNyquistCV, {"degrees": (-1,)}, ValueError,
+     r"`degrees\[0\]` must be an integer >= 0. Got -1"),
+    (LPMBeyondNyquistCV, {"n_jobs": 1.5}, ValueError,
+     "`n_jobs` must be None or a non-zero integer. Got 1.5"),
+    (LPMBeyondNyquistCV, {"criterion": None}, ValueError,
+     "`criterion` must be one of .*Got None"),
+])
+def test_parameters_are_checked_before_the_data(CV, params, exc, match):
+    """scikit-learn convention: parameters are validated at the start of fit.
+    The data are also bad here (N != F*M); the parameter error must come
+    first, and the constructor itself must not complain."""
+    u, y = _data(np.random.default_rng(19))
+    est = CV(**params)
+    with pytest.raises(exc, match=match):
+        est.fit(u[:-1], y, F)
+
+
+def test_one_integer_is_a_grid_of_one_and_duplicates_are_dropped():
+    u, y = _data(np.random.default_rng(20))
+    cv = LRMBeyondNyquistCV(half_windows=12, num_degrees=(2, 2.0),
+                            den_degrees=(4,)).fit(u, y, F)
+    assert cv.cv_results_["params"] == [
+        {"half_window": 12, "num_degree": 2, "transient_degree": 2, "den_degree": 4}]
+    # The parameters themselves are stored as given (scikit-learn's clone).
+    assert cv.get_params()["num_degrees"] == (2, 2.0)
+
+
+def test_fitted_cv_pickles_with_its_results():
+    u, y = _data(np.random.default_rng(21))
+    cv = LRMBeyondNyquistCV(**SMALL_GRID).fit(u, y, F)
+    again = pickle.loads(pickle.dumps(cv))
+    np.testing.assert_array_equal(again.cv_results_["criterion"],
+                                  cv.cv_results_["criterion"])
+    assert again.best_criterion_ == cv.best_criterion_
+    np.testing.assert_array_equal(again.predict(u), cv.predict(u))
+    with pytest.warns(FutureWarning):
+        again.cv_results_["rank_test_score"]
+
+
+def test_docstring_examples_run():
+    import doctest
+
+    import lrmfrf.estimators.selection as module
+
+    result = doctest.testmod(module, optionflags=doctest.NORMALIZE_WHITESPACE)
+    assert result.attempted > 0
+    assert result.failed == 0

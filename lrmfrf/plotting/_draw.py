@@ -1,93 +1,33 @@
-"""Bode plots with uncertainty bands, and FRF error plots (matplotlib).
+"""Drawing: Bode plots with uncertainty bands and FRF error plots (matplotlib).
 
-matplotlib is an optional dependency (``pip install "lrmfrf[plot]"``); it is
-imported when a plot is drawn, so ``import lrmfrf.plotting`` always works.
-
-Every function accepts fitted estimators (``frequencies_`` in Hz, ``frf_``,
-``frf_std_``, ``valid_``, ``downsampling_factor_``, ``sample_time_``),
-``control.FrequencyResponseData`` objects (``omega`` in rad/s) or
-``(frequencies_hz, frf)`` / ``(frequencies_hz, frf, std)`` tuples, and returns
-what it drew.
+The inputs are normalised to :class:`~lrmfrf.plotting._curves.FRFCurve` by
+:mod:`lrmfrf.plotting._curves`; this module lays out the axes, draws curves,
+bands and the slow Nyquist frequency, and keeps the phase continuous.
+matplotlib is imported only when a plot is drawn.
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["plot_frf", "plot_error", "frf_curve"]
+from ._curves import (
+    FRFCurve,
+    _estimate_curve,
+    _resolve_slow_nyquist,
+    _true_curve,
+    _truth_on_grid,
+    frf_collection,
+    frf_curve,
+)
+
+__all__ = ["plot_frf", "plot_error"]
 
 logger = logging.getLogger(__name__)
 
 _INSTALL_HINT = 'plotting needs matplotlib: pip install "lrmfrf[plot]"'
-
-
-@dataclass(frozen=True)
-class FRFCurve:
-    """One FRF on its frequency grid, as the plots use it.
-
-    Attributes
-    ----------
-    frequencies : ndarray of shape (n_freq,)
-        Frequencies in Hz.
-    frf : ndarray of shape (n_freq,), complex
-        Invalid bins hold NaN.
-    std : ndarray of shape (n_freq,) or None
-        Standard deviation of the complex estimate.
-    slow_nyquist : float or None
-        ``1 / (2 F Ts)`` in Hz when known.
-    sample_time : float or None
-        Fast sample time in seconds when known.
-    n_samples : int or None
-        Record length ``N`` when the grid is the fast DFT grid ``k = 0..N//2``.
-    """
-
-    frequencies: np.ndarray
-    frf: np.ndarray
-    std: np.ndarray | None
-    slow_nyquist: float | None
-    sample_time: float | None
-    n_samples: int | None = None
-
-
-def frf_curve(obj) -> FRFCurve:
-    """Convert an estimator, an FRD or a tuple to an :class:`FRFCurve`.
-
-    Parameters
-    ----------
-    obj : fitted estimator, control.FrequencyResponseData or tuple
-        A tuple is ``(frequencies_hz, frf)`` or ``(frequencies_hz, frf, std)``.
-
-    Returns
-    -------
-    FRFCurve
-
-    Raises
-    ------
-    TypeError
-        For other objects.
-    ValueError
-        For an unfitted estimator, a MIMO FRD or arrays of different lengths.
-    """
-    if hasattr(obj, "get_params") and not hasattr(obj, "frf_"):
-        raise ValueError(
-            f"This {type(obj).__name__} is not fitted. Call fit(u_h, y_l, F) "
-            "before plotting it."
-        )
-    if hasattr(obj, "frf_") and hasattr(obj, "frequencies_"):
-        return _estimator_curve(obj)
-    if hasattr(obj, "omega") and (hasattr(obj, "frdata") or hasattr(obj, "fresp")):
-        return _frd_curve(obj)
-    if isinstance(obj, tuple) and len(obj) in (2, 3):
-        return _tuple_curve(obj)
-    raise TypeError(
-        f"Cannot plot an object of type {type(obj).__name__}. Pass a fitted "
-        "estimator, a control.FrequencyResponseData or a (frequencies_hz, frf"
-        "[, std]) tuple."
-    )
 
 
 def plot_frf(
@@ -110,8 +50,10 @@ def plot_frf(
     Parameters
     ----------
     *frfs : fitted estimators, control.FrequencyResponseData or tuples
-        FRFs to draw (see :func:`frf_curve`); invalid bins leave gaps. The
-        first is drawn on top, with the most opaque band.
+        FRFs to draw (see :func:`frf_curve`), as separate arguments, as one
+        list, or as one mapping ``{label: frf}`` (its keys are the labels);
+        invalid bins leave gaps. The first is drawn on top, with the most
+        opaque band.
     true : control LTI system, FRD, tuple or complex ndarray, optional
         Reference drawn as a black dashed line. A python-control system is
         evaluated on a dense grid (at ``z = exp(j 2 pi f Ts)`` if discrete); an
@@ -123,7 +65,8 @@ def plot_frf(
         is drawn down to the bottom of the axes) and the matching phase band
         ``+/- arcsin(std_band * std / |G|)``. ``0`` draws no band.
     labels : sequence of str, optional
-        Legend labels, one per FRF; default the class names.
+        Legend labels, one per FRF; default the class names (with a mapping,
+        its keys).
     slow_nyquist : float, bool or None, default=None
         Frequency in Hz of the dotted vertical line marking the slow Nyquist
         frequency ``1/(2 F Ts)``; the band above it is lightly shaded.
@@ -171,8 +114,8 @@ def plot_frf(
     """
     if not frfs:
         raise ValueError("plot_frf needs at least one FRF to draw. Pass an estimator.")
+    frfs, labels = frf_collection(frfs, labels, what="FRF")
     curves = [frf_curve(obj) for obj in frfs]
-    labels = _check_labels(labels, frfs)
     std_band = _check_std_band(std_band)
     if xscale not in ("log", "linear"):
         raise ValueError(f"xscale must be 'log' or 'linear'. Got {xscale!r}.")
@@ -280,7 +223,8 @@ def plot_error(
         estimate's own grid (needed when the grids differ, e.g. spectral
         analysis on its segment grid).
     *estimates : fitted estimators or complex ndarrays of shape (n_freq,)
-        Estimates; arrays need ``frequencies``.
+        Estimates, as separate arguments, one list, or one mapping
+        ``{label: estimate}``; arrays need ``frequencies``.
     frequencies : ndarray of shape (n_freq,), optional
         Frequencies in Hz of array estimates (and of an array ``G_true``).
     kind : {"cumulative", "relative"}, default="cumulative"
@@ -291,7 +235,8 @@ def plot_error(
         bins add nothing). ``"relative"``: ``|G - Ghat| / |G|`` on a log axis
         (see :func:`lrmfrf.metrics.relative_error`).
     labels : sequence of str, optional
-        Legend labels, one per estimate.
+        Legend labels, one per estimate; default the class names (with a
+        mapping, its keys).
     ax : matplotlib Axes, optional
         Axes to draw into; default a new figure.
     slow_nyquist : float, bool or None, default=None
@@ -308,6 +253,18 @@ def plot_error(
     -------
     fig : matplotlib.figure.Figure
     ax : matplotlib Axes
+        The error axes (one Axes, as ``plt.subplots()`` returns).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from lrmfrf.plotting import plot_error
+    >>> f = np.linspace(0, 100, 11)
+    >>> G = np.full(11, 2.0 + 0j)
+    >>> fig, ax = plot_error(G, {"10 % high": 1.1 * G, "exact": G},
+    ...                      frequencies=f, kind="relative", slow_nyquist=False)
+    >>> [line.get_label() for line in ax.get_lines()]
+    ['10 % high', 'exact']
     """
     if kind not in ("cumulative", "relative"):
         raise ValueError(
@@ -321,9 +278,9 @@ def plot_error(
         yscale = "log" if kind == "relative" else "linear"
     if yscale not in ("log", "linear"):
         raise ValueError(f"yscale must be 'log' or 'linear'. Got {yscale!r}.")
-    from . import metrics
+    from .. import metrics
 
-    labels = _check_labels(labels, estimates)
+    estimates, labels = frf_collection(estimates, labels, what="estimate")
     curves = [_estimate_curve(est, frequencies) for est in estimates]
     if ax is None:
         plt = _pyplot()
@@ -389,23 +346,6 @@ def _bode_axes(ax):
     return axes[0].figure, axes
 
 
-def _check_labels(labels, objs) -> list[str]:
-    if labels is None:
-        return [_default_label(obj) for obj in objs]
-    labels = list(labels)
-    if len(labels) != len(objs):
-        raise ValueError(
-            f"Got {len(labels)} labels for {len(objs)} FRFs. Pass one label per FRF."
-        )
-    return [str(label) for label in labels]
-
-
-def _default_label(obj) -> str:
-    if isinstance(obj, (tuple, np.ndarray)):
-        return "estimate"
-    return type(obj).__name__
-
-
 def _check_std_band(std_band) -> float:
     try:
         value = float(std_band)
@@ -415,138 +355,6 @@ def _check_std_band(std_band) -> float:
         raise ValueError(
             f"std_band must be a non-negative number of standard deviations. Got "
             f"{std_band!r}. Use e.g. 2 (0 draws no band)."
-        )
-    return value
-
-
-def _estimator_curve(est) -> FRFCurve:
-    frf = np.array(est.frf_, dtype=complex)
-    valid = np.asarray(getattr(est, "valid_", np.ones(frf.shape, bool)), dtype=bool)
-    frf[~valid] = np.nan
-    std = getattr(est, "frf_std_", None)
-    std = None if std is None else np.where(valid, np.asarray(std, dtype=float), np.nan)
-    F = getattr(est, "downsampling_factor_", None)
-    Ts = getattr(est, "sample_time_", None)
-    nyquist = 1.0 / (2.0 * F * Ts) if F and Ts else None
-    N = getattr(est, "n_samples_", None)
-    N = N if N is not None and frf.size == N // 2 + 1 else None
-    return FRFCurve(np.asarray(est.frequencies_, float), frf, std, nyquist, Ts, N)
-
-
-def _frd_curve(frd) -> FRFCurve:
-    data = getattr(frd, "frdata", None)
-    if data is None:
-        data = frd.fresp
-    data = np.asarray(data)
-    if data.ndim == 3:
-        if data.shape[:2] != (1, 1):
-            raise ValueError(
-                f"Only SISO FRDs can be plotted. Got {data.shape[0]} outputs and "
-                f"{data.shape[1]} inputs. Plot one channel, e.g. frd[0, 0]."
-            )
-        data = data[0, 0]
-    dt = getattr(frd, "dt", None)
-    numeric = isinstance(dt, (int, float)) and not isinstance(dt, bool)
-    Ts = float(dt) if numeric and dt else None
-    freq = np.asarray(frd.omega, dtype=float) / (2 * np.pi)
-    return FRFCurve(freq, data.astype(complex), None, None, Ts)
-
-
-def _tuple_curve(obj) -> FRFCurve:
-    freq = np.asarray(obj[0], dtype=float)
-    frf = np.asarray(obj[1], dtype=complex)
-    std = np.asarray(obj[2], dtype=float) if len(obj) == 3 else None
-    shapes = {a.shape for a in (freq, frf) + (() if std is None else (std,))}
-    if len(shapes) != 1 or freq.ndim != 1:
-        raise ValueError(
-            f"The (frequencies, frf[, std]) arrays must be 1-D of equal length. Got "
-            f"shapes {[np.shape(a) for a in obj]}. Pass matching arrays."
-        )
-    return FRFCurve(freq, frf, std, None, None)
-
-
-def _estimate_curve(est, frequencies) -> FRFCurve:
-    if isinstance(est, np.ndarray) or (
-        isinstance(est, Sequence) and not isinstance(est, tuple)
-    ):
-        if frequencies is None:
-            raise ValueError(
-                "Array estimates need their frequencies. Pass frequencies= (Hz) "
-                "or the fitted estimators themselves."
-            )
-        return _tuple_curve((frequencies, est))
-    return frf_curve(est)
-
-
-def _is_lti(obj) -> bool:
-    return hasattr(obj, "dt") and callable(obj) and not hasattr(obj, "omega")
-
-
-def _evaluate_lti(system, frequencies: np.ndarray, sample_time) -> np.ndarray:
-    if getattr(system, "ninputs", 1) != 1 or getattr(system, "noutputs", 1) != 1:
-        raise ValueError(
-            "The true system must be SISO. Pass one channel, e.g. system[0, 0]."
-        )
-    dt = system.dt
-    if dt is None or dt == 0 or dt is False:
-        points = 2j * np.pi * frequencies
-    else:
-        step = sample_time if dt is True else float(dt)
-        if step is None:
-            raise ValueError(
-                "The true system has an unspecified sample time (dt=True). Give "
-                "it dt in seconds."
-            )
-        points = np.exp(2j * np.pi * frequencies * step)
-    return np.asarray(system(points), dtype=complex).reshape(frequencies.shape)
-
-
-def _true_curve(true, first: FRFCurve, window=None) -> FRFCurve:
-    if _is_lti(true):
-        grid = first.frequencies
-        positive = grid[grid > 0]
-        if window is not None:
-            grid = np.union1d(grid, np.linspace(window[0], window[1], 2000))
-        elif positive.size:
-            dense = np.geomspace(positive.min(), grid.max(), 2000)
-            grid = np.union1d(grid, dense)
-        return FRFCurve(grid, _evaluate_lti(true, grid, first.sample_time), None,
-                        None, first.sample_time)
-    if isinstance(true, np.ndarray):
-        if true.shape != first.frequencies.shape:
-            raise ValueError(
-                f"An array `true` must lie on the first FRF's grid of "
-                f"{first.frequencies.size} frequencies. Got shape {true.shape}. "
-                "Pass the true system (python-control) to evaluate it anywhere."
-            )
-        return FRFCurve(first.frequencies, true.astype(complex), None, None, None)
-    return frf_curve(true)
-
-
-def _truth_on_grid(G_true, curve: FRFCurve, frequencies) -> np.ndarray:
-    if _is_lti(G_true):
-        return _evaluate_lti(G_true, curve.frequencies, curve.sample_time)
-    truth = np.asarray(G_true, dtype=complex)
-    if truth.shape != curve.frf.shape:
-        raise ValueError(
-            f"G_true has shape {truth.shape} but an estimate has "
-            f"{curve.frf.shape[0]} frequencies. Pass the true system "
-            "(python-control) to evaluate it on each estimate's grid."
-        )
-    return truth
-
-
-def _resolve_slow_nyquist(slow_nyquist, curves) -> float | None:
-    if slow_nyquist is False:
-        return None
-    if slow_nyquist is None or slow_nyquist is True:
-        known = [c.slow_nyquist for c in curves if c.slow_nyquist is not None]
-        return known[0] if known else None
-    value = float(slow_nyquist)
-    if not np.isfinite(value) or value <= 0:
-        raise ValueError(
-            f"slow_nyquist must be a positive frequency in Hz, None or False. Got "
-            f"{slow_nyquist!r}."
         )
     return value
 
