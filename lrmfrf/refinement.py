@@ -34,7 +34,7 @@ the active set.
 
 **Guard.** A local model whose denominator has a root close to the window
 centre can interpolate the noise of the centre bin (only ``q`` spare
-equations), which blows that bin up by orders of magnitude (``METHOD.md``).
+equations), which blows that bin up by orders of magnitude (``docs/method.md``).
 An iterate of a window is rejected when ``e(x)`` gets a root within
 ``guard / n`` of ``x = 0`` (``guard`` in slow bins) closer than the closest
 root of the closed-form model, or when its FRF at the centre moves away from

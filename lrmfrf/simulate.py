@@ -34,6 +34,7 @@ import scipy.sparse.csgraph
 from ._validation import (
     check_downsampling_factor,
     check_nonnegative_int,
+    check_rng,
     check_sample_time,
     check_siso_system,
 )
@@ -162,7 +163,7 @@ def simulate(
     F = check_downsampling_factor(F)
     u = _check_input(u_h, F)
     x_start = _check_initial_state(x0, A.shape[0])
-    generator = _check_rng(rng)
+    generator = check_rng(rng)
     if snr_db is not None and noise_std is not None:
         raise ValueError(
             f"give either snr_db or noise_std, not both; got {snr_db=} and "
@@ -352,16 +353,6 @@ def _check_initial_state(x0, n_states: int, name: str = "x0") -> np.ndarray:
     if not np.all(np.isfinite(state)):
         raise ValueError(f"{name} contains NaN or inf; pass a finite state.")
     return state
-
-
-def _check_rng(rng) -> np.random.Generator:
-    valid = rng is None or isinstance(rng, (numbers.Integral, np.random.Generator))
-    if valid and not isinstance(rng, bool):
-        return np.random.default_rng(rng)
-    raise TypeError(
-        f"rng must be None, an int seed or a numpy.random.Generator; got "
-        f"{type(rng).__name__}. Use np.random.default_rng(seed)."
-    )
 
 
 def _check_n_samples(n_samples) -> int:

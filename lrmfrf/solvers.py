@@ -95,7 +95,7 @@ def solve_local_least_squares(
     ``theta = argmin ||b - A theta||^2`` per window, which is the paper's
     ``Theta = Y K^H (K K^H)^-1`` with ``A = K^T``. Columns are equilibrated to
     unit norm and the problem is solved by Householder QR, which is invariant
-    to that scaling (an SVD cutoff is not, see ``METHOD.md``).
+    to that scaling (an SVD cutoff is not, see ``docs/method.md``).
 
     Parameters
     ----------

@@ -2,7 +2,7 @@
 
 The local model of the paper around slow bin ``k`` uses the ``2n+1`` slow bins
 ``k+r``, ``r = -n..n``. Windows wrap periodically (``k+r mod M`` for the slow
-output, ``k+r+fM mod N`` for the fast input, see ``METHOD.md``): the DFT is
+output, ``k+r+fM mod N`` for the fast input, see ``docs/method.md``): the DFT is
 periodic, the estimate stays exactly conjugate-symmetric and the variance
 formula holds at the edges.
 

@@ -268,13 +268,27 @@ def test_multi_experiment_cv_counts_equations_of_all_experiments():
 def test_lpm_cv_refits_the_polynomial_estimator():
     rng = np.random.default_rng(9)
     u, y = _data(rng)
-    cv = LPMBeyondNyquistCV(half_windows=(6, 12), degrees=(1, 2)).fit(u, y, F)
+    cv = LPMBeyondNyquistCV(half_windows=(6, 12), num_degrees=(1, 2)).fit(u, y, F)
     assert isinstance(cv.best_estimator_, LPMBeyondNyquist)
-    assert set(cv.best_params_) == {"half_window", "degree", "transient_degree"}
+    assert set(cv.best_params_) == {"half_window", "num_degree", "transient_degree"}
     plain = LPMBeyondNyquist(**cv.best_params_).fit(u, y, F)
     np.testing.assert_array_equal(cv.frf_, plain.frf_)
     assert (cv.cv_results_["param_transient_degree"]
-            == cv.cv_results_["param_degree"]).all()
+            == cv.cv_results_["param_num_degree"]).all()
+
+
+def test_lpm_cv_degrees_is_a_deprecated_alias_of_num_degrees():
+    rng = np.random.default_rng(9)
+    u, y = _data(rng)
+    new = LPMBeyondNyquistCV(half_windows=(6, 12), num_degrees=(1, 2)).fit(u, y, F)
+    old = LPMBeyondNyquistCV(half_windows=(6, 12), degrees=(1, 2))
+    with pytest.warns(FutureWarning, match="renamed `num_degrees`") as record:
+        old.fit(u, y, F)
+    assert record[0].filename == __file__  # points at the caller of fit
+    assert old.best_params_ == new.best_params_
+    np.testing.assert_array_equal(old.frf_, new.frf_)
+    with pytest.raises(ValueError, match="Pass num_degrees only"):
+        LPMBeyondNyquistCV(num_degrees=(3,), degrees=(1, 2)).fit(u, y, F)
 
 
 def test_infeasible_candidates_are_reported_and_ranked_last():
@@ -319,8 +333,8 @@ def test_empty_grid_is_rejected():
     u, y = _data(rng)
     with pytest.raises(ValueError, match="grid is empty: `half_windows` has no"):
         LRMBeyondNyquistCV(half_windows=()).fit(u, y, F)
-    with pytest.raises(ValueError, match="grid is empty: `degrees` has no"):
-        LPMBeyondNyquistCV(degrees=[]).fit(u, y, F)
+    with pytest.raises(ValueError, match="grid is empty: `num_degrees` has no"):
+        LPMBeyondNyquistCV(num_degrees=[]).fit(u, y, F)
 
 
 def test_grid_without_identifiable_candidate_is_rejected():

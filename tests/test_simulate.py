@@ -272,7 +272,7 @@ def test_rejects_bad_noise_settings(stage):
         simulate(stage.G_y4, u, 3, snr_db=np.inf)
     with pytest.raises(ValueError, match="zero variance"):
         simulate(stage.G_y4, np.zeros(30), 3, snr_db=40.0)
-    with pytest.raises(TypeError, match="rng must be None, an int seed"):
+    with pytest.raises(TypeError, match="`rng` must be None, an int seed"):
         simulate(stage.G_y4, u, 3, noise_std=1.0, rng=0.5)
 
 

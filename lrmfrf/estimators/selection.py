@@ -86,7 +86,7 @@ from ..local_models import (
     window_excitation,
 )
 from ..progress import progress
-from ..solvers import solve_local_least_squares
+from ..solvers import CHUNK_BYTES, solve_local_least_squares
 from ..windows import LocalModelLayout, local_regressor
 from ._base import _BaseFRFEstimator
 from .local import LPMBeyondNyquist, LRMBeyondNyquist
@@ -104,9 +104,6 @@ CRITERIA = ("aicc", "gcv", "press")
 
 #: Residual degrees of freedom each criterion needs (AICc divides by L - p - 1).
 _MIN_DOF = {"aicc": 2, "gcv": 1, "press": 1}
-
-#: Default bound on the bytes of one chunk's regressor.
-_CHUNK_BYTES = 2**25
 
 
 @dataclass
@@ -225,7 +222,7 @@ def _local_criteria(U, Y, layout, *, chunk_size=None):
     slow_bins = half_slow_bins(M)
     if chunk_size is None:
         per_window = 16 * layout.n_equations * (layout.n_params + 2)
-        chunk_size = max(1, _CHUNK_BYTES // per_window)
+        chunk_size = max(1, CHUNK_BYTES // per_window)
     centre_rows = np.arange(P) * layout.window + layout.half_window
     per_bin = {name: np.empty(slow_bins.size) for name in ("press", "residual")}
     well_posed = np.empty(slow_bins.size, dtype=bool)
@@ -513,10 +510,11 @@ class LRMBeyondNyquistCV(_LocalModelCV):
         Candidate ``R_g``.
     transient_degrees : sequence of int or None, default=None
         Candidate ``R_t``; ``None`` ties ``R_t = R_g`` (the paper's settings
-        and METHOD.md's all have ``R_t = R_g``), which keeps the grid small.
+        all have ``R_t = R_g``), which keeps the grid small.
     den_degrees : sequence of int, default=(2, 4, 7, 8)
         Candidate ``R_e``. The default grid (64 candidates) contains the
-        paper's Table I setting (18, 4, 4, 7) and METHOD.md's (5, 5, 4).
+        paper's Table I setting (18, 4, 4, 7) and the ``R_g >= R_e``
+        setting (5, 5, 4) of ``docs/method.md``.
     criterion : {"aicc", "gcv", "press"}, default="aicc"
         See :func:`local_model_criterion` and the module notes.
     n_jobs : int or None, default=None
@@ -622,6 +620,13 @@ class LRMBeyondNyquistCV(_LocalModelCV):
         return dict(params)
 
 
+def _check_deprecated_grid(value, name: str):
+    """``LPMBeyondNyquistCV``'s old ``degrees``: the sentinel, or a grid."""
+    if isinstance(value, str) and value == "deprecated":
+        return None
+    return _check_grid(value, name)
+
+
 class LPMBeyondNyquistCV(_LocalModelCV):
     """LPM beyond Nyquist with the window and degree chosen from the data.
 
@@ -632,8 +637,9 @@ class LPMBeyondNyquistCV(_LocalModelCV):
     ----------
     half_windows : sequence of int, default=(6, 9, 12, 18, 24)
         Candidate ``n``.
-    degrees : sequence of int, default=(1, 2, 3, 4)
-        Candidate polynomial degrees of the system.
+    num_degrees : sequence of int, default=(1, 2, 3, 4)
+        Candidate polynomial degrees of the system (``num_degree`` of
+        :class:`LPMBeyondNyquist`).
     transient_degrees : sequence of int or None, default=None
         Candidate transient degrees; ``None`` uses the system degree.
     criterion : {"aicc", "gcv", "press"}, default="aicc"
@@ -646,7 +652,7 @@ class LPMBeyondNyquistCV(_LocalModelCV):
     Attributes
     ----------
     best_params_ : dict
-        ``half_window``, ``degree``, ``transient_degree``.
+        ``half_window``, ``num_degree``, ``transient_degree``.
     best_criterion_, best_index_, best_estimator_, cv_results_
         As in :class:`LRMBeyondNyquistCV`.
     frequencies_, frf_, frf_std_, valid_, ...
@@ -657,34 +663,59 @@ class LPMBeyondNyquistCV(_LocalModelCV):
 
     _parameter_checks = {
         "half_windows": _HALF_WINDOWS,
-        "degrees": _check_grid,
+        "num_degrees": _check_grid,
         "transient_degrees": _check_grid_or_none,
         "criterion": _check_criterion,
         "n_jobs": _check_n_jobs,
         "verbose": check_bool,
+        "degrees": _check_deprecated_grid,
     }
 
     def __init__(
         self,
         *,
         half_windows=(6, 9, 12, 18, 24),
-        degrees=(1, 2, 3, 4),
+        num_degrees=(1, 2, 3, 4),
         transient_degrees=None,
         criterion: str = "aicc",
         n_jobs: int | None = None,
         verbose: bool = False,
+        degrees="deprecated",
     ):
         self.half_windows = half_windows
-        self.degrees = degrees
+        self.num_degrees = num_degrees
         self.transient_degrees = transient_degrees
         self.criterion = criterion
         self.n_jobs = n_jobs
         self.verbose = verbose
+        self.degrees = degrees
+
+    def _checked_params(self) -> dict:
+        """As the base class; the deprecated ``degrees`` sets ``num_degrees``."""
+        params = super()._checked_params()
+        if params["degrees"] is not None:
+            default = _check_grid(type(self)().num_degrees, "num_degrees")
+            if params["num_degrees"] not in (default, params["degrees"]):
+                raise ValueError(
+                    "`degrees` is the deprecated name of `num_degrees`; got both, "
+                    f"degrees={self.degrees!r} and num_degrees={self.num_degrees!r}. "
+                    "Pass num_degrees only."
+                )
+            warnings.warn(
+                "`degrees` was renamed `num_degrees` in lrmfrf 0.2.0 (the name "
+                "LRMBeyondNyquistCV uses; LPMBeyondNyquist's `degree` became "
+                "`num_degree`) and will be removed in 0.3.0. Pass "
+                f"num_degrees={self.degrees!r} instead.",
+                FutureWarning,
+                stacklevel=3,  # -> the caller of fit
+            )
+            params["num_degrees"] = params["degrees"]
+        return params
 
     def _grid(self, params: dict) -> dict:
         return {
             "half_window": params["half_windows"],
-            "degree": params["degrees"],
+            "num_degree": params["num_degrees"],
             "transient_degree": params["transient_degrees"],
         }
 
@@ -692,13 +723,13 @@ class LPMBeyondNyquistCV(_LocalModelCV):
         candidates = super()._candidates(params)
         if params["transient_degrees"] is None:
             for c in candidates:
-                c["transient_degree"] = c["degree"]
+                c["transient_degree"] = c["num_degree"]
         return candidates
 
     def _degrees_of(self, params: dict) -> dict:
         return {
             "half_window": params["half_window"],
-            "num_degree": params["degree"],
+            "num_degree": params["num_degree"],
             "transient_degree": params["transient_degree"],
             "den_degree": 0,
         }
