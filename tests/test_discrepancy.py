@@ -506,7 +506,7 @@ def test_report_plot_old_api_warns(delay_report):
     with pytest.warns(FutureWarning, match=r"now returns \(fig, axes\)"):
         assert result["figure"] is fig
     assert result[0] is fig and list(result[1]) == list(given)
-    with pytest.raises(ValueError, match="`ax` must be three Axes"):
+    with pytest.raises(ValueError, match=r"`ax` must be 3 Axes \(magnitude, phase"):
         delay_report.plot(ax=given[:2])
     plt.close(fig)
 

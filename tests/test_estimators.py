@@ -40,6 +40,7 @@ from lrmfrf import (
     SpectralAnalysis,
     multisine,
 )
+from lrmfrf.estimators.selection import LPMBeyondNyquistCV, LRMBeyondNyquistCV
 
 ESTIMATORS = [LRMBeyondNyquist, LPMBeyondNyquist, SpectralAnalysis]
 
@@ -409,7 +410,11 @@ SKLEARN_CHECKS_NOT_APPLICABLE = {
 }
 
 
-@pytest.mark.parametrize("Est", ESTIMATORS)
+#: The estimators the scikit-learn checks run on: the CV classes too.
+SKLEARN_ESTIMATORS = [*ESTIMATORS, LRMBeyondNyquistCV, LPMBeyondNyquistCV]
+
+
+@pytest.mark.parametrize("Est", SKLEARN_ESTIMATORS)
 @pytest.mark.parametrize("name", SKLEARN_CHECKS_RUN)
 def test_sklearn_checks(Est, name):
     check = getattr(checks, name, None)
@@ -421,7 +426,7 @@ def test_sklearn_checks(Est, name):
 @pytest.mark.skipif(not hasattr(checks, "estimator_checks_generator"),
                     reason="check_estimator(expected_failed_checks=) needs "
                     "scikit-learn >= 1.6")
-@pytest.mark.parametrize("Est", ESTIMATORS)
+@pytest.mark.parametrize("Est", SKLEARN_ESTIMATORS)
 def test_sklearn_check_estimator_lists_are_complete(Est):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

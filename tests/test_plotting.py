@@ -167,7 +167,7 @@ def test_bad_arguments(fitted):
     with pytest.raises(ValueError, match="xscale must be"):
         plot_frf(fitted, xscale="symlog")
     fig, axis = plt.subplots()
-    with pytest.raises(ValueError, match="ax must be two Axes"):
+    with pytest.raises(ValueError, match=r"`ax` must be 2 Axes \(magnitude, phase\)"):
         plot_frf(fitted, ax=axis)
     with pytest.raises(ValueError, match="slow_nyquist must be a positive"):
         plot_frf(fitted, slow_nyquist=-3.0)

@@ -9,11 +9,8 @@ import control
 import joblib
 import numpy as np
 import pytest
-import sklearn
 from conftest import frf_of, resonant_system, simulate_resonant
 from sklearn.base import clone
-from sklearn.utils import estimator_checks as checks
-from test_estimators import SKLEARN_CHECKS_NOT_APPLICABLE, SKLEARN_CHECKS_RUN
 
 from lrmfrf import LPMBeyondNyquist, LRMBeyondNyquist, multisine
 from lrmfrf.estimators.selection import (
@@ -396,42 +393,6 @@ def test_unequal_records_and_mismatched_experiments_are_rejected():
 # --- scikit-learn contract and declared parameter checks -------------------------
 
 CV_ESTIMATORS = [LRMBeyondNyquistCV, LPMBeyondNyquistCV]
-
-
-@pytest.mark.parametrize("CV", CV_ESTIMATORS)
-@pytest.mark.parametrize("name", SKLEARN_CHECKS_RUN)
-def test_sklearn_checks(CV, name):
-    """The checks that apply to estimators of signals (the lists and their
-    reasons are those of tests/test_estimators.py)."""
-    check = getattr(checks, name, None)
-    if check is None:
-        pytest.skip(f"{name} is not in scikit-learn {sklearn.__version__}")
-    check(CV.__name__, CV())
-
-
-@pytest.mark.skipif(not hasattr(checks, "estimator_checks_generator"),
-                    reason="check_estimator(expected_failed_checks=) needs "
-                    "scikit-learn >= 1.6")
-@pytest.mark.parametrize("CV", CV_ESTIMATORS)
-def test_sklearn_check_estimator_lists_are_complete(CV):
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        results = checks.check_estimator(
-            CV(), expected_failed_checks=SKLEARN_CHECKS_NOT_APPLICABLE,
-            on_fail=None, on_skip=None,
-        )
-    status = {}
-    for result in results:
-        status.setdefault(result["check_name"], set()).add(result["status"])
-    unknown = set(status) - set(SKLEARN_CHECKS_RUN) - set(
-        SKLEARN_CHECKS_NOT_APPLICABLE) - {"check_array_api_input"}  # skipped
-    assert not unknown, f"new scikit-learn checks to classify: {sorted(unknown)}"
-    for name in SKLEARN_CHECKS_RUN:
-        if name in status:
-            assert status[name] == {"passed"}, (name, status[name])
-    for name in SKLEARN_CHECKS_NOT_APPLICABLE:
-        if name in status:
-            assert status[name] == {"xfail"}, (name, status[name])
 
 
 @pytest.mark.parametrize("CV", CV_ESTIMATORS)

@@ -309,22 +309,9 @@ class _PlotResult(tuple):
 
 
 def _diagnosis_axes(ax):
-    if ax is None:
-        import matplotlib.pyplot as plt
+    from ..plotting._draw import axes_column
 
-        fig, axes = plt.subplots(3, 1, figsize=(8, 9), sharex=True,
-                                 layout="constrained")
-        return fig, np.asarray(axes)
-    try:
-        axes = np.asarray(list(ax), dtype=object)
-    except TypeError:
-        axes = np.asarray([ax], dtype=object)
-    if axes.size != 3:
-        raise ValueError(
-            f"`ax` must be three Axes (magnitude, phase, discrepancy). Got "
-            f"{axes.size}. Create them with fig.subplots(3, 1, sharex=True)."
-        )
-    return axes[0].figure, axes
+    return axes_column(ax, ("magnitude", "phase", "discrepancy"), figsize=(8, 9))
 
 
 def _db(magnitude: np.ndarray) -> np.ndarray:

@@ -329,19 +329,26 @@ def _pyplot():
 
 
 def _bode_axes(ax):
+    return axes_column(ax, ("magnitude", "phase"), figsize=(9.5, 6))
+
+
+def axes_column(ax, panels: tuple[str, ...], *, figsize) -> tuple:
+    """``(fig, axes)``: the user's ``ax`` (one Axes per panel, checked) or a new
+    column of ``len(panels)`` Axes sharing the frequency axis."""
+    count = len(panels)
     if ax is None:
         plt = _pyplot()
-        fig, axes = plt.subplots(2, 1, sharex=True, figsize=(9.5, 6),
+        fig, axes = plt.subplots(count, 1, sharex=True, figsize=figsize,
                                  layout="constrained")
-        return fig, np.asarray(axes)
+        return fig, np.atleast_1d(np.asarray(axes))
     try:
         axes = np.asarray(list(ax), dtype=object)
     except TypeError:
         axes = np.asarray([ax], dtype=object)
-    if axes.size != 2:
+    if axes.size != count:
         raise ValueError(
-            f"ax must be two Axes (magnitude, phase). Got {axes.size}. Create them "
-            "with fig.subplots(2, 1, sharex=True)."
+            f"`ax` must be {count} Axes ({', '.join(panels)}). Got {axes.size}. "
+            f"Create them with fig.subplots({count}, 1, sharex=True)."
         )
     return axes[0].figure, axes
 
