@@ -5,6 +5,8 @@
 * :func:`mimo_wafer_stage`: the MIMO OAT-like stage, four corner actuators,
   four encoders and a point-of-interest sensor, under decoupled feedback
   (:mod:`lrmfrf.plants.mimo_stage`).
+* :func:`random_stage`: random stages of both kinds with checked loops, to test
+  on stages nobody tuned on (:mod:`lrmfrf.plants.random_stages`).
 * :mod:`lrmfrf.plants.loops`: the lead-PID controller, closed loops
   ``P (I + C P_y)^-1`` and stability margins shared by the plants.
 """
@@ -17,6 +19,7 @@ from .mimo_stage import (
     mimo_wafer_stage,
     plate_plant,
 )
+from .random_stages import RandomDraw, random_stage
 from .siso_stage import (
     DEFAULT_MODES,
     Mode,
@@ -33,6 +36,7 @@ __all__ = [
     "Margins",
     "Mode",
     "PlateMode",
+    "RandomDraw",
     "WaferStage",
     "closed_loop",
     "lead_pid_controller",
@@ -40,5 +44,6 @@ __all__ = [
     "mimo_wafer_stage",
     "modal_plant",
     "plate_plant",
+    "random_stage",
     "wafer_stage",
 ]
