@@ -163,8 +163,9 @@ def simulate(
         ``control.TransferFunction``, or ``rng`` is invalid.
     ValueError
         For continuous systems, mismatched sample times, an input whose
-        shape does not match the system's inputs or that is not finite, ``N`` not a multiple of ``F``, a wrong ``x0`` shape,
-        both or invalid noise settings.
+        shape does not match the system's inputs or that is not finite,
+        ``N`` not a multiple of ``F``, a wrong ``x0`` shape, both or invalid
+        noise settings.
 
     Examples
     --------
