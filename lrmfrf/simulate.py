@@ -49,9 +49,11 @@ from ._validation import (
 from .solvers import CHUNK_BYTES
 
 __all__ = [
+    "FeedbackSimulationResult",
     "SimulationResult",
     "frequency_grid",
     "simulate",
+    "simulate_slow_feedback",
     "transient_frf",
     "true_frf",
 ]
@@ -215,6 +217,150 @@ def simulate(
         sample_time=dt,
         x0=x_start,
         x_final=x_final,
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class FeedbackSimulationResult(SimulationResult):
+    """Result of :func:`simulate_slow_feedback`.
+
+    The attributes of :class:`SimulationResult` (``u_h`` is the realised
+    plant input ``r - hold(c)``, which a user can also measure; ``y_l`` the
+    noisy slow outputs the controller read; ``x0``/``x_final`` the plant
+    states), and:
+
+    Attributes
+    ----------
+    r : ndarray of shape (N,) or (n_u, N)
+        The excitation (a copy).
+    controller_output : ndarray of shape (M,) or (n_u, M)
+        Controller output ``c(m)`` at the slow samples, before the hold.
+    """
+
+    r: np.ndarray = None
+    controller_output: np.ndarray = None
+
+
+def simulate_slow_feedback(
+    plant: control.StateSpace | control.TransferFunction,
+    controller: control.StateSpace | control.TransferFunction,
+    r: np.ndarray,
+    F: int,
+    *,
+    feedback_outputs=None,
+    x0: np.ndarray | None = None,
+    snr_db: float | None = None,
+    noise_std: float | None = None,
+    rng: int | np.random.Generator | None = None,
+) -> FeedbackSimulationResult:
+    """Simulate a plant in a slow-rate feedback loop (vision in the loop).
+
+    The controller runs on the slow samples of the measured outputs
+    ``feedback_outputs``, ``c = C_l y_l[feedback_outputs]`` with ``y_l(m) =
+    y_h(m F) + v_l(m)``, and its output is held over ``F`` fast samples
+    (zero-order hold) and subtracted at the plant input::
+
+        u_h(n) = r(n) - c(floor(n / F)),   y_h = P u_h.
+
+    The measurement noise ``v_l`` enters at the slow outputs, hence also in
+    the loop. The closed loop is simulated exactly: the plant lifted over
+    ``F`` fast samples and the controller form one slow-rate state-space
+    system (algebraic loops through feedthroughs solved), whose controller
+    output gives ``u_h``; the plant is then simulated at the fast rate
+    from ``u_h``. The controller starts at rest.
+
+    Parameters
+    ----------
+    plant : control.StateSpace or control.TransferFunction
+        Discrete fast-rate plant (``dt`` = fast sample time), ``n_y`` outputs,
+        ``n_u`` inputs.
+    controller : control.StateSpace or control.TransferFunction
+        Discrete controller with ``dt == F * plant.dt``, ``n_u`` outputs and
+        ``len(feedback_outputs)`` inputs.
+    r : array_like of shape (N,) or (n_u, N)
+        Excitation at the plant input, as ``u_h`` of :func:`simulate`.
+    F : int
+        Downsampling factor of the sensor and of the controller.
+    feedback_outputs : sequence of int, optional
+        Plant outputs the controller reads; default all.
+    x0 : array_like of shape (n_states,), optional
+        Initial plant state; default zeros.
+    snr_db, noise_std : float or array_like of shape (n_y,), optional
+        Slow-rate measurement noise per output channel, as in
+        :func:`simulate`; ``snr_db`` refers to each output of the noise-free
+        closed loop.
+    rng : int, numpy.random.Generator or None
+        Seed or generator for the noise.
+
+    Returns
+    -------
+    FeedbackSimulationResult
+        1-D arrays for a SISO plant and a 1-D ``r``, else channels first.
+
+    Raises
+    ------
+    ValueError
+        As :func:`simulate`, and for a controller whose ``dt`` is not ``F``
+        times the plant's, whose shape does not match, or that does not
+        stabilise the loop.
+
+    Examples
+    --------
+    >>> import control, numpy as np
+    >>> plant = control.ss([[0.9]], [[1.0]], [[1.0]], [[0.0]], 1e-3)
+    >>> controller = control.ss([], [], [], [[0.2]], 3e-3)
+    >>> result = simulate_slow_feedback(plant, controller, np.ones(6), 3)
+    >>> result.u_h
+    array([1.   , 1.   , 1.   , 0.458, 0.458, 0.458])
+    """
+    A, B, C, D, dt = _system_matrices(plant, None)
+    F = check_downsampling_factor(F)
+    r_checked = _check_input(r, F, n_inputs=B.shape[1], name="r")
+    n_outputs, n_inputs = D.shape
+    x_start = _check_initial_state(x0, A.shape[0])
+    generator = check_rng(rng)
+    if snr_db is not None and noise_std is not None:
+        raise ValueError(
+            f"give either snr_db or noise_std, not both; got {snr_db=} and "
+            f"{noise_std=}. Set the other to None."
+        )
+    feedback = _feedback_selection(feedback_outputs, n_outputs)
+    controller_matrices = _slow_controller_matrices(
+        controller, dt, F, n_inputs, len(feedback)
+    )
+    lifted = _lifted_loop(A, B, C, D, controller_matrices, F, feedback)
+    excitation = r_checked.reshape(n_inputs, -1)
+    n_slow = excitation.shape[1] // F
+    # lifted input: r(mF + i) for i < F, stacked i-major, then the noise
+    stacked = excitation.reshape(n_inputs, n_slow, F).transpose(2, 0, 1)
+    stacked = stacked.reshape(F * n_inputs, n_slow)
+
+    def run(noise):
+        lifted_input = np.vstack([stacked, noise[list(feedback)]])
+        start = np.concatenate([x_start, np.zeros(lifted[0].shape[0] - x_start.size)])
+        held, _ = _simulate_kernel_mimo(*lifted, lifted_input, start)
+        u = excitation - np.repeat(held, F, axis=1)
+        y, x_end = _simulate_kernel_mimo(A, B, C, D, u, x_start)
+        return u, y, x_end, held
+
+    zero_noise = np.zeros((n_outputs, n_slow))
+    u, y_h, x_final, held = run(zero_noise)
+    std = _noise_std_per_output(y_h[:, ::F], snr_db, noise_std)
+    noise = zero_noise
+    if np.any(std > 0):
+        noise = std[:, np.newaxis] * generator.standard_normal((n_outputs, n_slow))
+        u, y_h, x_final, held = run(noise)
+    y_l_clean = y_h[:, ::F].copy()
+    y_l = y_l_clean + noise
+    if r_checked.ndim == 1 and n_outputs == 1:
+        u, y_h, y_l, y_l_clean, held = u[0], y_h[0], y_l[0], y_l_clean[0], held[0]
+        std = float(std[0])
+    elif r_checked.ndim == 1:
+        u = u[0]
+    return FeedbackSimulationResult(
+        u_h=u, y_h=y_h, y_l=y_l, y_l_clean=y_l_clean, noise_std=std,
+        downsampling_factor=F, sample_time=dt, x0=x_start, x_final=x_final,
+        r=r_checked, controller_output=held,
     )
 
 
@@ -406,6 +552,101 @@ def _check_input(u_h, F: int, *, n_inputs: int = 1, name: str = "u_h") -> np.nda
             f"{length - length % F} samples."
         )
     return u
+
+
+def _feedback_selection(feedback_outputs, n_outputs: int) -> tuple[int, ...]:
+    if feedback_outputs is None:
+        return tuple(range(n_outputs))
+    if isinstance(feedback_outputs, numbers.Integral):
+        feedback_outputs = (feedback_outputs,)
+    indices = tuple(feedback_outputs)
+    if (
+        not indices
+        or not all(isinstance(i, numbers.Integral) for i in indices)
+        or len(set(indices)) != len(indices)
+        or not all(0 <= i < n_outputs for i in indices)
+    ):
+        raise ValueError(
+            f"feedback_outputs must be distinct output indices in [0, "
+            f"{n_outputs - 1}]; got {feedback_outputs!r}."
+        )
+    return tuple(int(i) for i in indices)
+
+
+def _slow_controller_matrices(controller, plant_dt, F, n_inputs, n_feedback):
+    if not isinstance(controller, (control.StateSpace, control.TransferFunction)):
+        raise TypeError(
+            "controller must be a control.StateSpace or TransferFunction; got "
+            f"{type(controller).__name__}."
+        )
+    if not control.isdtime(controller, strict=True) or controller.dt is True:
+        raise ValueError(
+            f"controller must be discrete-time with a known sample time; got "
+            f"dt={controller.dt!r}. Discretise it at F times the plant's."
+        )
+    if plant_dt is None or not math.isclose(
+        float(controller.dt), F * plant_dt, rel_tol=1e-9
+    ):
+        raise ValueError(
+            f"controller.dt={controller.dt!r} s must be F * plant.dt = "
+            f"{F} * {plant_dt!r} s (the controller runs on the slow samples). "
+            "Discretise the controller at the slow sample time."
+        )
+    if controller.noutputs != n_inputs or controller.ninputs != n_feedback:
+        raise ValueError(
+            f"the controller must have n_u = {n_inputs} outputs and "
+            f"len(feedback_outputs) = {n_feedback} inputs; got "
+            f"{controller.noutputs} outputs and {controller.ninputs} inputs."
+        )
+    return _system_matrices(controller, None)[:4]
+
+
+def _lifted_loop(A, B, C, D, controller, F, feedback):
+    """Slow-rate closed loop of the plant lifted over ``F`` samples and the
+    controller: state ``[x(mF), x_c(m)]``, input ``[r(mF), ..., r(mF+F-1),
+    v_fb(m)]``, output the controller output ``c(m)``; ``(A, B, C, D)``.
+
+    With ``S`` the selection, ``y_fb = S C x + S D (r_0 - c) + v``, ``c = C_c
+    x_c + D_c y_fb`` gives ``c = W (D_c S C x + C_c x_c + D_c S D r_0 + D_c
+    v)``, ``W = (I + D_c S D)^-1``; ``x+ = A^F x + sum_i A^(F-1-i) B (r_i -
+    c)``, ``x_c+ = A_c x_c + B_c y_fb``.
+    """
+    Ac, Bc, Cc, Dc = controller
+    n, n_u = B.shape
+    select = np.eye(C.shape[0])[list(feedback)]
+    SC, SD = select @ C, select @ D
+    loop = np.eye(n_u) + Dc @ SD
+    if np.linalg.cond(loop) > 1e12:
+        raise ValueError(
+            "the feedback loop is algebraically singular (I + D_C D_P is "
+            "singular); add a delay or change the controller feedthrough."
+        )
+    W = np.linalg.inv(loop)
+    powers = [np.eye(n)]
+    for _ in range(F - 1):
+        powers.append(A @ powers[-1])
+    lifted_B = np.hstack([powers[F - 1 - i] @ B for i in range(F)])
+    Gamma = sum(powers[i] @ B for i in range(F))
+    Phi = A @ powers[-1]
+    first = np.zeros((n_u, F * n_u))
+    first[:, :n_u] = np.eye(n_u)
+    # c = K_x x + K_c x_c + K_r r_lift + K_v v
+    K_x, K_c, K_r, K_v = W @ Dc @ SC, W @ Cc, W @ Dc @ SD @ first, W @ Dc
+    # y_fb = SC x + SD first r_lift - SD c + v
+    Y_x, Y_c = SC - SD @ K_x, -SD @ K_c
+    Y_r, Y_v = SD @ first - SD @ K_r, np.eye(len(feedback)) - SD @ K_v
+    A_loop = np.block([[Phi - Gamma @ K_x, -Gamma @ K_c], [Bc @ Y_x, Ac + Bc @ Y_c]])
+    B_loop = np.block([[lifted_B - Gamma @ K_r, -Gamma @ K_v], [Bc @ Y_r, Bc @ Y_v]])
+    C_loop = np.hstack([K_x, K_c])
+    D_loop = np.hstack([K_r, K_v])
+    radius = float(np.max(np.abs(np.linalg.eigvals(A_loop)), initial=0.0))
+    if radius >= 1.0:
+        raise ValueError(
+            f"the slow-rate controller does not stabilise the loop: largest "
+            f"closed-loop pole magnitude (slow rate) is {radius:.6g} >= 1. Lower "
+            "the controller bandwidth."
+        )
+    return A_loop, B_loop, C_loop, D_loop
 
 
 def _check_initial_state(x0, n_states: int, name: str = "x0") -> np.ndarray:
