@@ -83,8 +83,11 @@ class ClosedLoopPlant:
     valid_ : ndarray of bool, shape (K,) or (n_y, n_u, K)
         False at bins where an entry of the estimate it depends on is invalid
         (all entries of the bin, and for a slow loop of all bands of its slow
-        bin) or the loop matrix is singular; the same for all entries of a
-        bin.
+        bin), where the loop matrix ``I - Q`` is singular (condition number or
+        cancellation factor ``||(I - Q)^-1|| ||Q||`` above 1e12), or where the
+        controller has a pole on the unit circle (an integrator at DC: the
+        loop maps the plant to zero there, for a slow loop on all bands of
+        the slow bin). The same for all entries of a bin.
     sample_time_ : float
         Fast sample time in s.
     downsampling_factor_ : int
@@ -217,6 +220,7 @@ def plant_from_closed_loop(
         z = np.exp(2j * np.pi * estimate["frequencies"] * sample_time)
         frf, var, valid = _fast_loop(estimate, _matrix_response(A, B, C, D, z),
                                      feedback)
+        valid &= ~_at_pole(A, z)
     elif math.isclose(dt, F * sample_time, rel_tol=1e-9):
         rate = "slow"
         frf, var, valid = _slow_loop(estimate, (A, B, C, D), feedback)
@@ -352,14 +356,25 @@ def _unbatched(array: np.ndarray) -> np.ndarray:
     return np.moveaxis(array, 0, -1)
 
 
-def _safe_inverse(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Inverses of (K, n, n) matrices and where they are well conditioned."""
-    finite = np.isfinite(matrices).all(axis=(1, 2))
-    safe = np.where(finite[:, None, None], matrices, np.eye(matrices.shape[1]))
+def _safe_inverse(matrices: np.ndarray, subtracted: np.ndarray):
+    """Inverses of the loop matrices ``X = I - Q``, (K, n, n), and where they
+    are usable: finite, ``cond(X)`` and the cancellation factor ``||X^-1||
+    ||Q||`` (by which forming ``I - Q`` amplifies relative errors of ``Q``)
+    below ``_MAX_LOOP_CONDITION``. The factor is the loop gain: a scalar loop
+    ``1 - q`` has condition 1 but loses all digits when ``q`` is ``1 + 1e-13``.
+    """
+    eye = np.eye(matrices.shape[1])
+    finite = np.isfinite(matrices).all(axis=(1, 2)) & np.isfinite(subtracted).all(
+        axis=(1, 2))
+    safe = np.where(finite[:, None, None], matrices, eye)
     with np.errstate(all="ignore"):
         ok = finite & (np.linalg.cond(safe) < _MAX_LOOP_CONDITION)
-    safe[~ok] = np.eye(matrices.shape[1])
-    return np.linalg.inv(safe), ok
+        safe[~ok] = eye
+        inverse = np.linalg.inv(safe)
+        gain = np.linalg.norm(np.where(ok[:, None, None], subtracted, 0), ord=2,
+                              axis=(1, 2))
+        ok &= np.linalg.norm(inverse, ord=2, axis=(1, 2)) * gain < _MAX_LOOP_CONDITION
+    return inverse, ok
 
 
 def _row_variance(left, right, cov) -> np.ndarray:
@@ -376,8 +391,9 @@ def _fast_loop(estimate, controller_frf, feedback):
     G = _batched(estimate["frf"])  # (K, n_y, n_u)
     Cz = _batched(controller_frf)  # (K, n_u, n_fb)
     n_outputs, n_inputs = G.shape[1:]
-    loop = np.eye(n_inputs) - Cz @ G[:, feedback, :]
-    inverse, ok = _safe_inverse(loop)
+    with np.errstate(all="ignore"):
+        gain = Cz @ G[:, feedback, :]
+    inverse, ok = _safe_inverse(np.eye(n_inputs) - gain, gain)
     valid = estimate["valid"] & ok
     with np.errstate(all="ignore"):
         P = G @ inverse
@@ -409,10 +425,10 @@ def _slow_loop(estimate, controller, feedback):
     with np.errstate(all="ignore"):
         weighted = (G * hold[:, None, None]).reshape(F, slow, n_outputs, n_inputs)
         lam = weighted.mean(axis=0)  # (M, n_y, n_u)
-        loop = np.tile(np.eye(n_outputs, dtype=complex), (slow, 1, 1))
-        loop[:, :, feedback] -= lam @ Cl
-    Z, ok = _safe_inverse(loop)
-    valid &= ok
+        gain = np.zeros((slow, n_outputs, n_outputs), dtype=complex)
+        gain[:, :, feedback] = lam @ Cl
+    Z, ok = _safe_inverse(np.eye(n_outputs) - gain, gain)
+    valid &= ok & ~_at_pole(controller[0], z_slow)
     bins = np.arange(K)
     k = bins % slow
     with np.errstate(all="ignore"):
@@ -428,6 +444,16 @@ def _slow_loop(estimate, controller, feedback):
                              right.conj()).real
         var = np.einsum("kao,kob->kab", np.abs(Z[k]) ** 2, row)
     return _unbatched(P), _unbatched(var), valid[k]
+
+
+def _at_pole(A: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Where ``z`` is (within 1e-9) a pole of the controller on the unit circle:
+    its gain is infinite there (e.g. an integrator at DC), the loop maps the
+    plant to zero and the data cannot identify it."""
+    if A.shape[0] == 0:
+        return np.zeros(z.shape, dtype=bool)
+    poles = np.linalg.eigvals(A)
+    return (np.abs(z[:, None] - poles[None, :]) < 1e-9).any(axis=1)
 
 
 def _full_grid_length(frequencies: np.ndarray, sample_time: float, F: int) -> int:
