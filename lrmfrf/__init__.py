@@ -24,6 +24,7 @@ _PUBLIC = {
     "diagnose": "lrmfrf.discrepancy",
     "IdentifiabilityWarning": "lrmfrf.exceptions",
     "multisine": "lrmfrf.signals",
+    "plant_from_closed_loop": "lrmfrf.closed_loop",
     "wafer_stage": "lrmfrf.plants",
 }
 

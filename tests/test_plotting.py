@@ -175,9 +175,11 @@ def test_bad_arguments(fitted):
         plot_frf(fitted, true=np.ones(5, complex))
     with pytest.raises(ValueError, match="1-D of equal length"):
         plot_frf((np.arange(3.0), np.ones(4)))
+    # issue 13: plot_frf draws a MIMO FRD as a grid (tests/test_plotting_mimo);
+    # the SISO curve conversion still refuses one
     mimo = control.FrequencyResponseData(np.ones((2, 1, 3)), [1.0, 2.0, 3.0])
     with pytest.raises(ValueError, match="Only SISO FRDs"):
-        plot_frf(mimo)
+        frf_curve(mimo)
 
 
 def test_missing_matplotlib_gives_install_hint(monkeypatch, fitted):

@@ -212,17 +212,21 @@ def test_noise_std_and_seeding(stage):
 # --- bad input ----------------------------------------------------------------
 
 
-def test_rejects_non_state_space_and_continuous_and_mimo(stage):
+def test_rejects_non_state_space_and_continuous_and_mimo_shape(stage):
+    """MIMO systems are simulated since issue 13 (this test pinned their
+    refusal before); a record whose channels do not match the inputs is
+    refused."""
     u = np.zeros(6)
     with pytest.raises(TypeError, match="must be a control.StateSpace or "
                        "TransferFunction"):
         simulate(control.frd([1.0, 2.0], [0.1, 0.2]), u, 3)
     with pytest.raises(ValueError, match="must be discrete-time"):
         simulate(stage.plant_continuous[0, 0], u, 3)
-    with pytest.raises(ValueError, match="must be SISO"):
-        simulate(stage.plant, u, 3)
-    with pytest.raises(ValueError, match="must be SISO"):
-        true_frf(stage.plant, 6)
+    two_inputs = control.ss([[0.5]], [[1.0, 2.0]], [[1.0]], [[0.0, 0.0]], TS)
+    with pytest.raises(ValueError, match=r"shape \(n_u, N\) = \(2, N\)"):
+        simulate(two_inputs, u, 3)
+    with pytest.raises(ValueError, match=r"shape \(n_u, N\) = \(2, N\)"):
+        simulate(two_inputs, np.zeros((3, 6)), 3)
 
 
 def test_rejects_mismatched_sample_time(stage):

@@ -22,6 +22,7 @@ from ._curves import (
     frf_collection,
     frf_curve,
 )
+from ._grid import is_mimo, plot_frf_grid
 
 __all__ = ["plot_frf", "plot_error"]
 
@@ -46,6 +47,15 @@ def plot_frf(
     units: str | None = None,
 ):
     """Bode plot (magnitude in dB, phase in degrees) with uncertainty bands.
+
+    A MIMO FRF (an estimator or result whose ``frf_`` has shape ``(n_y, n_u,
+    K)``, or a MIMO ``control.FrequencyResponseData``) is drawn as an ``n_y x
+    n_u`` grid of Bode magnitudes with their std bands, one panel per channel
+    titled ``input -> output`` (labels from the FRD's or the estimator's
+    ``output_labels_``/``input_labels_`` when present, else ``y0..``/
+    ``u0..``); the phase is not drawn there (``phase`` is ignored: plot one
+    channel for it). ``true`` is then a MIMO system, FRD or ``(n_y, n_u, K)``
+    array, and ``ax`` an array of Axes of shape ``(n_y, n_u)``.
 
     Parameters
     ----------
@@ -99,8 +109,8 @@ def plot_frf(
     Returns
     -------
     fig : matplotlib.figure.Figure
-    axes : ndarray of shape (2,) of matplotlib Axes
-        Magnitude and phase axes.
+    axes : ndarray of shape (2,) or (n_y, n_u) of matplotlib Axes
+        Magnitude and phase axes; for a MIMO FRF the grid of magnitude axes.
 
     Examples
     --------
@@ -115,6 +125,12 @@ def plot_frf(
     if not frfs:
         raise ValueError("plot_frf needs at least one FRF to draw. Pass an estimator.")
     frfs, labels = frf_collection(frfs, labels, what="FRF")
+    if any(is_mimo(obj) for obj in frfs):
+        return plot_frf_grid(
+            frfs, labels, true=true, ax=ax, std_band=_check_std_band(std_band),
+            slow_nyquist=slow_nyquist, xscale=_check_xscale(xscale),
+            max_points=max_points, title=title, legend=_check_legend(legend),
+            window=_check_freq_range(freq_range), units=units)
     curves = [frf_curve(obj) for obj in frfs]
     std_band = _check_std_band(std_band)
     if xscale not in ("log", "linear"):
@@ -353,6 +369,20 @@ def axes_column(ax, panels: tuple[str, ...], *, figsize) -> tuple:
     return axes[0].figure, axes
 
 
+def _check_xscale(xscale: str) -> str:
+    if xscale not in ("log", "linear"):
+        raise ValueError(f"xscale must be 'log' or 'linear'. Got {xscale!r}.")
+    return xscale
+
+
+def _check_legend(legend: str) -> str:
+    if legend not in ("outside", "inside", "none"):
+        raise ValueError(
+            f"legend must be 'outside', 'inside' or 'none'. Got {legend!r}."
+        )
+    return legend
+
+
 def _check_std_band(std_band) -> float:
     try:
         value = float(std_band)
@@ -406,23 +436,46 @@ def _draw_curve(axes, curve: FRFCurve, keep, label, color, std_band,
     mag_ax, phase_ax = axes
     freq = curve.frequencies[keep]
     frf = curve.frf[keep]
-    magnitude = np.abs(frf)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        mag_db = 20 * np.log10(magnitude)
     phase = np.angle(frf, deg=True)
     if reference_phase is not None:
         phase = _phase_near(freq, phase, *reference_phase)
     phase[~np.isfinite(frf)] = np.nan
-    mag_ax.plot(freq, mag_db, color=color, linestyle=linestyle, linewidth=1.0,
-                label=label, zorder=zorder)
+    floor, band, ratio = _draw_magnitude(
+        mag_ax, curve, keep, label, color, std_band, linestyle=linestyle,
+        zorder=zorder, band_alpha=band_alpha)
     phase_ax.plot(*_break_wraps(freq, phase), color=color, linestyle=linestyle,
                   linewidth=1.0, zorder=zorder)
+    if band is None:
+        return floor, phase
+    with np.errstate(invalid="ignore"):
+        half_width = np.where(ratio < 1, np.degrees(np.arcsin(ratio)), 180.0)
+    phase_band = band.copy()
+    phase_band[np.flatnonzero(np.abs(np.diff(phase)) > 180.0) + 1] = False
+    phase_ax.fill_between(freq, phase - half_width, phase + half_width,
+                          where=phase_band, color=color, alpha=band_alpha,
+                          linewidth=0, zorder=zorder - 1.5)
+    return floor, phase
+
+
+def _draw_magnitude(mag_ax, curve: FRFCurve, keep, label, color, std_band,
+                    linestyle="-", zorder=2.0, band_alpha=0.25):
+    """Draw one magnitude curve (dB) and its band ``|G| +/- std_band std``.
+
+    Returns a floor for the axis, where the band is drawn (``None`` if no band
+    or no finite point) and ``std_band std / |G|`` clipped to [0, 1].
+    """
+    freq = curve.frequencies[keep]
+    magnitude = np.abs(curve.frf[keep])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mag_db = 20 * np.log10(magnitude)
+    mag_ax.plot(freq, mag_db, color=color, linestyle=linestyle, linewidth=1.0,
+                label=label, zorder=zorder)
     finite = mag_db[np.isfinite(mag_db)]
     if finite.size == 0:
-        return np.nan, phase
+        return np.nan, None, None
     floor = float(finite.min()) - 10.0
     if curve.std is None or std_band == 0:
-        return floor, phase
+        return floor, None, None
     spread = std_band * curve.std[keep]
     with np.errstate(divide="ignore", invalid="ignore"):
         upper = 20 * np.log10(magnitude + spread)
@@ -430,16 +483,10 @@ def _draw_curve(axes, curve: FRFCurve, keep, label, color, std_band,
             magnitude > spread, 20 * np.log10(magnitude - spread), floor - 10.0
         )
         ratio = np.clip(spread / magnitude, 0.0, 1.0)
-        half_width = np.where(ratio < 1, np.degrees(np.arcsin(ratio)), 180.0)
     band = np.isfinite(upper) & np.isfinite(spread)
     mag_ax.fill_between(freq, lower, upper, where=band, color=color,
                         alpha=band_alpha, linewidth=0, zorder=zorder - 1.5)
-    phase_band = band.copy()
-    phase_band[np.flatnonzero(np.abs(np.diff(phase)) > 180.0) + 1] = False
-    phase_ax.fill_between(freq, phase - half_width, phase + half_width,
-                          where=phase_band, color=color, alpha=band_alpha,
-                          linewidth=0, zorder=zorder - 1.5)
-    return floor, phase
+    return floor, band, ratio
 
 
 def _reference_phase(curve: FRFCurve, xscale: str):
