@@ -390,7 +390,9 @@ class _LocalModelCV(_BaseFRFEstimator):
         """
         params = self._checked_params()
         criterion = params["criterion"]
-        u, y, F = check_records(u_h, y_l, F)
+        records = check_records(u_h, y_l, F)
+        u, y = records.siso_stacks(type(self).__name__)
+        F = records.F
         sample_time = check_sample_time(sample_time)
         candidates = self._candidates(params)
         P, M = y.shape
@@ -449,7 +451,7 @@ class _LocalModelCV(_BaseFRFEstimator):
         self.best_params_ = dict(candidates[best])
         self.best_criterion_ = float(value[best])
         estimator = clone(self._base_class(**candidates[best]))
-        estimator.fit(u, y, F, sample_time=sample_time)
+        estimator.fit(list(u), list(y), F, sample_time=sample_time)
         self.best_estimator_ = estimator
         for name, attr in vars(estimator).items():
             if name.endswith("_") and not name.startswith("_"):
