@@ -203,7 +203,8 @@ def _true_frf(system, N):
     A, B, C, D = (np.asarray(m) for m in (system.A, system.B, system.C, system.D))
     z = np.exp(2j * np.pi * np.arange(N // 2 + 1) / N)
     eye = np.eye(A.shape[0])
-    X = np.linalg.solve(z[:, None, None] * eye - A, np.broadcast_to(B, (z.size,) + B.shape))
+    X = np.linalg.solve(z[:, None, None] * eye - A,
+                        np.broadcast_to(B, (z.size,) + B.shape))
     return np.moveaxis(C @ X + D, 0, -1)
 
 
