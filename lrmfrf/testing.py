@@ -28,6 +28,8 @@ def in_class_data(layout: LocalModelLayout, n_slow: int, rng=None):
     Returns
     -------
     u : ndarray of shape (P, N)
+        ``P`` SISO records: pass ``list(u)`` (or ``u[:, None]``) to ``fit``,
+        since a 2-D array is one record with channels first.
     y : ndarray of shape (P, M)
     centres : ndarray of int
         Window centres where the data are in class.

@@ -62,10 +62,13 @@ class _LocalModelEstimator(_BaseFRFEstimator):
 
         Parameters
         ----------
-        u_h : array-like of shape (N,) or (P, N), or list of P records
-            Fast-rate input(s), real.
-        y_l : array-like of shape (M,) or (P, M), or list of P records
-            Slow-rate output(s), real, ``y_l(m) = y_h(m F) + noise``.
+        u_h : array-like of shape (N,), (n_u, N) or (P, n_u, N), or list
+            Fast-rate input(s), real: one record (1-D, or 2-D with channels
+            first) or ``P`` experiments (3-D, or a list of 1-D/2-D records).
+            A 2-D array is ONE record: several SISO experiments go in a list
+            or a (P, 1, N) array.
+        y_l : array-like of shape (M,), (n_y, M) or (P, n_y, M), or list
+            Slow-rate output(s) likewise, real, ``y_l(m) = y_h(m F) + noise``.
         F : int
             Downsampling factor, ``N = F M``.
         sample_time : float, default=1.0
@@ -83,9 +86,13 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         ------
         TypeError, ValueError
             For a parameter out of range, signals that are not real, finite,
-            non-empty and 1-D (or a stack of equal-length records), ``N != F M``,
-            a window wider than the slow record, or fewer equations than
-            parameters (the message says which setting to change).
+            non-empty records of equal length in the record convention,
+            ``N != F M``, a window wider than the slow record, or fewer
+            equations than parameters (the message names the smallest half
+            window, or the number of experiments, that would do).
+        NotImplementedError
+            For iterative refinement (``sk_iterations``, ``lm_iterations``)
+            with more than one input or output.
 
         Warns
         -----
@@ -286,37 +293,53 @@ class LRMBeyondNyquist(_LocalModelEstimator):
         sample (``k / N``) when ``fit`` got no ``sample_time`` (default 1.0).
     frf_ : ndarray of shape (N//2+1,), complex
         Estimated FRF ``G(k)`` from ``u_h`` to ``y_h`` (units of ``y_l`` per
-        unit of ``u_h``); NaN where ``valid_`` is False.
-    frf_std_ : ndarray of shape (N//2+1,)
+        unit of ``u_h``); NaN where ``valid_`` is False. With ``n_u`` inputs
+        or ``n_y`` outputs (not both 1): shape (n_y, n_u, N//2+1), entry
+        ``[o, i]`` from input ``i`` to output ``o``. Each output row is one
+        local problem per window: the local models of all inputs over all
+        ``F`` bands with one denominator and one transient per experiment.
+    frf_std_ : ndarray of shape (N//2+1,) or (n_y, n_u, N//2+1)
         Standard deviation of ``frf_`` (Lemma 2, ``sqrt(E|G_hat - G|^2)``).
-    valid_ : ndarray of shape (N//2+1,), bool
-        False where the local problem was not well posed (``frf_`` is NaN).
+    frf_cov_ : ndarray of shape (n_y, n_u, n_u, N//2+1), complex
+        Always 4-D: ``E[dG_oi conj(dG_oj)]`` between the entries of one output
+        row at each fast bin (Lemma 2 per output row); ``frf_std_ ==
+        sqrt(real(diagonal))``. Cross-band and cross-output covariances are
+        not kept.
+    valid_ : ndarray of shape (N//2+1,) or (n_y, n_u, N//2+1), bool
+        False where the local problem was not well posed (``frf_`` is NaN);
+        the same for all inputs of an output row.
     slow_frequencies_ : ndarray of shape (M//2+1,)
         Slow window centres in Hz.
-    noise_variance_ : ndarray of shape (M//2+1,)
-        The paper's residual estimate of the variance of the slow output noise
-        DFT ``V_l(k)``: ``||Y - Theta K||^2 / dof_`` of the weighted problem.
-        With ``den_degree > 0`` the output sits in the regressor
-        (errors-in-variables) and the fit absorbs part of the noise, so this is
-        biased low (on pure noise about 0.3x for R_e = 7; with a system to fit,
-        ``frf_std_`` is still 0.85-0.9x the Monte-Carlo std on the wafer stage).
+    noise_variance_ : ndarray of shape (M//2+1,) or (n_y, M//2+1)
+        Per output row (MIMO). The paper's residual estimate of the variance
+        of the slow output noise DFT ``V_l(k)``: ``||Y - Theta K||^2 /
+        dof_`` of the weighted problem. With ``den_degree > 0`` the output
+        sits in the regressor (errors-in-variables) and the fit absorbs part
+        of the noise, so this is biased low (on pure noise about 0.3x for
+        R_e = 7; with a system to fit, ``frf_std_`` is still 0.85-0.9x the
+        Monte-Carlo std on the wafer stage).
     transient_ : ndarray of shape (M//2+1,) or (P, M//2+1), complex
-        Transient term in the slow output DFT at each window centre.
+        Transient term in the slow output DFT at each window centre; (P, n_y,
+        M//2+1) when not SISO.
     n_params_ : int
-        Complex parameters per local problem,
-        ``(R_g+1) F + P (R_t+1) + R_e``.
+        Complex parameters per local problem (per output row),
+        ``(R_g+1) F n_u + P (R_t+1) + R_e``.
     dof_ : int
         Residual degrees of freedom per local problem, ``P (2n+1) - n_params_``.
     n_samples_, n_slow_, n_experiments_ : int
         ``N``, ``M`` and ``P`` of the training records.
+    n_inputs_, n_outputs_ : int
+        ``n_u`` and ``n_y``.
     downsampling_factor_ : int
         ``F``.
     sample_time_ : float
         Fast sample time in seconds.
     layout_ : lrmfrf.windows.LocalModelLayout
         Sizes and column order of the local problems.
-    local_fit_ : lrmfrf.local_models.LocalModelFit
-        Per-slow-bin results (parameters, band values, variances).
+    local_fit_ : lrmfrf.local_models.LocalModelFit or list of them
+        Per-slow-bin results (parameters, band values, variances); a list of
+        ``n_y`` fits, one per output row, when not SISO (band ``b = i F + f``
+        is input ``i``, see :func:`lrmfrf.windows.band_indices`).
     cost_history_ : ndarray of shape (1 + n_sk_iter_ + n_lm_iter_,) or None
         Mean over the slow bins of the original least-squares cost
         (eq. meanCosts, ``mu_OE``) after the closed form and after each SK,
@@ -330,6 +353,8 @@ class LRMBeyondNyquist(_LocalModelEstimator):
 
     Notes
     -----
+    Iterative refinement (SK, LM) supports SISO data only; for MIMO data
+    ``fit`` raises ``NotImplementedError`` unless both are 0.
     After refinement, ``frf_std_`` is linearised at the final estimate (SK:
     Lemma 2 on the reweighted regressor; LM: ``(J^H J)^-1``) with the noise
     variance ``J_LS / dof_``. Iterative refinement is implemented in

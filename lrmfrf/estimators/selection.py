@@ -366,10 +366,12 @@ class _LocalModelCV(_BaseFRFEstimator):
 
         Parameters
         ----------
-        u_h : array-like of shape (N,) or (P, N), or list of P records
-            Fast-rate input(s), real.
-        y_l : array-like of shape (M,) or (P, M), or list of P records
-            Slow-rate output(s), real.
+        u_h : array-like of shape (N,), (1, N) or (P, 1, N), or list of P records
+            Fast-rate input(s), real, one input channel (a 2-D array is one
+            record with channels first; several experiments go in a list or a
+            3-D array). MIMO data are not supported by the selection yet.
+        y_l : array-like of shape (M,), (1, M) or (P, 1, M), or list of P records
+            Slow-rate output(s), real, one output channel.
         F : int
             Downsampling factor, ``N = F M``.
         sample_time : float, default=1.0
