@@ -409,6 +409,8 @@ def main(argv=None) -> None:
               "max_rel_diff_vs_qr", "first_call_s", "extrapolated", "skipped",
               "error", "data"]
     name = "speed_backends.csv" if args.backend == "both" else "speed.csv"
+    if args.mimo_only:
+        name = "speed_mimo.csv"
     with open(RESULTS / name, "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
         writer.writeheader()
