@@ -173,7 +173,7 @@ def experiments_error(system, G, seed: int, P: int) -> tuple[float, float, float
     y = np.array([simulate(system, row, F, snr_db=SNR_DB, rng=rng).y_l for row in u])
     n, rg, rt, re = TABLE_I
     est = LRMBeyondNyquist(half_window=n, num_degree=rg, transient_degree=rt,
-                           den_degree=re).fit(u, y, F)
+                           den_degree=re).fit(list(u), list(y), F)
     rel = np.abs(est.frf_[1:] - G[1:]) / np.abs(G[1:])
     return (float(np.median(rel)), float(np.sqrt(np.mean(rel**2))),
             float(np.median(est.frf_std_[1:] / np.abs(G[1:]))))
@@ -236,7 +236,7 @@ def heldout_one_seed(system, G, above, seed: int) -> dict:
                   for row in u])
     candidates = heldout_candidates()
     errors = np.array([
-        _errors(LRMBeyondNyquist(**c).fit(u, y, F).frf_, G, above)
+        _errors(LRMBeyondNyquist(**c).fit(list(u), list(y), F).frf_, G, above)
         for c in candidates
     ])  # (C, 2): all bins, above Nyquist
     search = GridSearchCV(
@@ -251,7 +251,7 @@ def heldout_one_seed(system, G, above, seed: int) -> dict:
         half_windows=HELDOUT_GRID["half_window"],
         num_degrees=HELDOUT_GRID["num_degree"],
         den_degrees=HELDOUT_GRID["den_degree"],
-    ).fit(u, y, F)
+    ).fit(list(u), list(y), F)
     r2 = results["mean_test_r2"]
     return {
         "errors": errors,

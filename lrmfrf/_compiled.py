@@ -287,22 +287,24 @@ def _lane_group(
     (sr, si, Sr, Si, Er, Ei, Or, Oi, mr, mi, Hr, Hi, gr, gi, xr, xi, dr, di,
      scale2, polyr, polyi, resr, resi, ok, change_num, change_den, k, tr, ti) = s
     P = U.shape[0]
-    N = U.shape[1] // 2
+    N = U.shape[2] // 2
     M = Y.shape[1] // 2
+    fold = N // M  # the downsampling factor; band f is input f // fold
     L, p = weights.shape
     n = L // 2
     B = bins.shape[0]
     for w in range(LANES):
         k[w] = bins[min(first + w, B - 1)]
-    # 1. window data: input bands 0..F-1 and -Y (data index F)
+    # 1. window data: input bands 0..F-1 and -Y (data index F); band f is
+    # input f // fold at fast bin j + (f % fold) M (lrmfrf.windows.band_indices)
     for q in range(P):
         for r in range(L):
             for w in range(LANES):
                 j = k[w] + r - n
                 for f in range(F):
-                    idx = 2 * ((j + f * M) % N)
-                    sr[f, q, r, w] = U[q, idx]
-                    si[f, q, r, w] = U[q, idx + 1]
+                    idx = 2 * ((j + (f % fold) * M) % N)
+                    sr[f, q, r, w] = U[q, f // fold, idx]
+                    si[f, q, r, w] = U[q, f // fold, idx + 1]
                 jm = 2 * (j % M)
                 sr[F, q, r, w] = -Y[q, jm]
                 si[F, q, r, w] = -Y[q, jm + 1]
@@ -503,11 +505,16 @@ def _lane_group(
                 theta[row, j, 0] = dr[j, w]
                 theta[row, j, 1] = di[j, w]
             rss[row] = total
+            # (L L^H)^-1 at the trailing block: T^H T, T the inverse tail
             for c in range(n_centre):
-                acc = 0.0
-                for i in range(c, n_centre):
-                    acc += tr[i, c, w] ** 2 + ti[i, c, w] ** 2
-                cvar[row, c] = acc
+                for d in range(n_centre):
+                    ar = 0.0
+                    ai = 0.0
+                    for i in range(max(c, d), n_centre):
+                        ar += tr[i, c, w] * tr[i, d, w] + ti[i, c, w] * ti[i, d, w]
+                        ai += tr[i, c, w] * ti[i, d, w] - ti[i, c, w] * tr[i, d, w]
+                    cvar[row, c, d, 0] = ar
+                    cvar[row, c, d, 1] = ai
             fast[row] = refined
         else:
             for i in range(p):
@@ -515,7 +522,9 @@ def _lane_group(
                 theta[row, i, 1] = np.nan
             rss[row] = np.nan
             for c in range(n_centre):
-                cvar[row, c] = np.nan
+                for d in range(n_centre):
+                    cvar[row, c, d, 0] = np.nan
+                    cvar[row, c, d, 1] = np.nan
             fast[row] = False
 
 
@@ -660,12 +669,15 @@ def solve_windows(
     tables: dict | None = None,
     to_layout: np.ndarray | None = None,
     n_threads: int | None = None,
+    return_cov: bool = False,
 ):
     """Solve the local normal equations of every window (compiled, threaded).
 
     Parameters
     ----------
-    U : ndarray of shape (P, N), complex
+    U : ndarray of shape (P, N) or (P, n_u, N), complex
+        Input DFTs; band ``f`` is input ``f // (N // M)`` (see
+        :func:`lrmfrf.windows.band_indices`).
     Y : ndarray of shape (P, M), complex
     slow_bins : ndarray of shape (B,), int
     weights : ndarray of shape (2n+1, p), float
@@ -673,8 +685,9 @@ def solve_windows(
     col_base : ndarray of shape (p,), int
         Base sequence of each column (see :func:`moment_tables`).
     F : int
+        Number of input bands (``F n_u``).
     n_centre : int
-        The last ``n_centre`` columns get their ``(A^H A)^-1`` diagonal.
+        The last ``n_centre`` columns get their ``(A^H A)^-1`` block.
     fallback_tol, refine_tol : float
         Equilibrated-pivot and refinement-change thresholds.
     refine_steps : int
@@ -696,7 +709,9 @@ def solve_windows(
         ``theta_internal @ to_layout``; NaN where the factorisation failed.
     rss : ndarray of shape (B,)
     centre_var : ndarray of shape (B, n_centre)
-        In the internal order (the last ``n_centre`` internal columns).
+        In the internal order (the last ``n_centre`` internal columns); with
+        ``return_cov=True`` the complex block of shape (B, n_centre,
+        n_centre) instead.
     fast : ndarray of shape (B,), bool
         False where the window must be re-solved by QR.
     """
@@ -706,11 +721,13 @@ def solve_windows(
     weights = np.ascontiguousarray(weights, dtype=np.float64)
     col_base = np.ascontiguousarray(col_base, dtype=np.int64)
     P = U.shape[0]
+    if U.ndim == 2:
+        U = U[:, None, :]
     if tables is None:
         tables = moment_tables(weights, col_base, F, P)
     theta = np.empty((B, p, 2))
     rss = np.empty(B)
-    centre_var = np.empty((B, n_centre))
+    centre_cov = np.empty((B, n_centre, n_centre, 2))
     fast = np.empty(B, dtype=np.bool_)
     t = tables
     if to_layout is None:
@@ -723,7 +740,7 @@ def solve_windows(
         t["ent_mom"], t["ent_coef"], t["ent_conj"], t["ent_const"], t["rhs_ptr"],
         t["rhs_mom"], t["rhs_coef"], int(t["n_moments"]),
         np.ascontiguousarray(to_layout, dtype=np.float64), float(fallback_tol),
-        float(refine_tol), int(refine_steps), theta, rss, centre_var, fast,
+        float(refine_tol), int(refine_steps), theta, rss, centre_cov, fast,
     )
     n_groups = (B + LANES - 1) // LANES
     tasks = [
@@ -736,7 +753,10 @@ def solve_windows(
     else:  # the kernel releases the GIL: threads share the lane groups
         with ThreadPoolExecutor(threads) as pool:
             list(pool.map(lambda task: _solve_range(*args, *task), tasks))
-    return theta.view(np.complex128)[..., 0], rss, centre_var, fast
+    centre_cov = centre_cov.view(np.complex128)[..., 0]
+    if not return_cov:
+        centre_cov = np.real(np.diagonal(centre_cov, axis1=1, axis2=2)).copy()
+    return theta.view(np.complex128)[..., 0], rss, centre_cov, fast
 
 
 def _as_interleaved(values: np.ndarray) -> np.ndarray:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numbers
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -16,6 +17,9 @@ __all__ = [
     "check_downsampling_factor",
     "check_signal",
     "check_records",
+    "parse_record_set",
+    "format_like_input",
+    "Records",
     "check_record_stack",
     "check_local_degrees",
     "check_nonnegative_int",
@@ -148,7 +152,7 @@ def check_signal(x, name: str, *, purpose: str = "fitting") -> np.ndarray:
         raise ValueError(
             f"`{name}` must be 1-D with shape (n_samples,). Got shape {arr.shape} "
             "instead. "
-            "Pass one record per call or a 2-D array of experiments to `fit`."
+            "Pass a 1-D record; " + SEVERAL_EXPERIMENTS_HINT
         )
     if arr.size == 0:
         raise ValueError(f"`{name}` is empty. Pass a record with samples.")
@@ -178,38 +182,236 @@ def _refuse_masked(x, name: str) -> None:
 def _column_vector_error(name: str, shape) -> ValueError:
     return ValueError(
         f"`{name}` has shape {tuple(shape)}: a column vector, which would be read "
-        f"as {shape[0]} experiments of one sample each. Pass one record as a 1-D "
-        f"array ({name}.ravel()), or several experiments as rows, i.e. transpose "
-        "a (n_samples, n_experiments) array."
+        f"as one record of {shape[0]} channels of one sample each. Pass one record "
+        f"as a 1-D array ({name}.ravel()) or channels first, (n_channels, "
+        "n_samples), i.e. transpose a (n_samples, n_channels) array; several "
+        "experiments go in a list or a 3-D array (n_experiments, n_channels, "
+        "n_samples)."
     )
 
 
-def _as_record_list(x, name: str) -> list:
+#: Appended to messages about a 2-D record whose shape does not fit.
+SEVERAL_EXPERIMENTS_HINT = (
+    "A 2-D array is ONE record with channels first, (n_channels, n_samples); "
+    "several experiments go in a list of records or a 3-D array "
+    "(n_experiments, n_channels, n_samples)."
+)
+
+#: The forms in which records can be given (see :class:`Records`).
+RECORD_FORMS = ("1d", "2d", "3d", "list")
+
+
+def _parse_one(x, name: str, purpose: str):
+    """One record, 1-D or channels-first 2-D, as a (n_channels, n) float copy."""
     _refuse_masked(x, name)
-    if isinstance(x, np.ndarray):
-        if x.ndim == 2:
-            if x.shape[1] == 1 and x.shape[0] > 1:
-                raise _column_vector_error(name, x.shape)
-            return [x[p] for p in range(x.shape[0])]
-        return [x]
-    if isinstance(x, Sequence) and not isinstance(x, (str, bytes)) and len(x) > 0:
-        first = x[0]
-        if isinstance(first, (Sequence, np.ndarray)) and not isinstance(
-            first, (str, bytes)
-        ):
-            if len(x) > 1 and np.size(first) == 1 and np.size(x[1]) == 1:
-                raise _column_vector_error(name, (len(x), 1))
-            return list(x)
-    return [x]
+    try:
+        arr = np.array(x, copy=True)
+    except Exception as exc:  # pragma: no cover - numpy raises many types
+        raise TypeError(f"`{name}` could not be converted to an array: {exc}") from exc
+    if arr.ndim == 2:
+        if arr.shape[1] == 1 and arr.shape[0] > 1:
+            raise _column_vector_error(name, arr.shape)
+        several = arr.shape[0] > 1
+        rows = [
+            check_signal(row, f"{name}[{c}]" if several else name, purpose=purpose)
+            for c, row in enumerate(arr)
+        ]
+        if not rows:
+            raise ValueError(f"`{name}` is empty. Pass a record with samples.")
+        return np.vstack(rows)
+    if arr.ndim != 1:
+        raise ValueError(
+            f"`{name}` must be one record, 1-D (n_samples,) or 2-D channels first "
+            f"(n_channels, n_samples). Got shape {arr.shape} instead. "
+            + SEVERAL_EXPERIMENTS_HINT
+        )
+    return check_signal(arr, name, purpose=purpose)[None, :]
 
 
-def check_record_stack(x, name: str, *, purpose: str = "fitting") -> np.ndarray:
-    """Validate one record or a stack of equal-length records.
+def parse_record_set(x, name: str, *, purpose: str = "fitting"):
+    """Parse a record or a set of experiments into one 3-D array.
+
+    The one record convention of the package (python-control's, channels
+    first, time last): 1-D ``(n,)`` is one SISO record; 2-D ``(n_ch, n)`` is
+    ONE record with channels first; 3-D ``(P, n_ch, n)`` holds ``P``
+    experiments; a list holds experiments, each 1-D or 2-D.
 
     Parameters
     ----------
-    x : array-like of shape (n_samples,) or (n_experiments, n_samples), or list
-        The record(s).
+    x : array-like or list
+    name : str
+        How the messages call it.
+    purpose : str, default="fitting"
+        Passed to :func:`check_signal`.
+
+    Returns
+    -------
+    data : ndarray of shape (P, n_channels, n_samples), float
+        A new array (the input is never modified).
+    form : {"1d", "2d", "3d", "list"}
+        How ``x`` was given.
+    item_ndim : tuple of int
+        ``ndim`` of each experiment as given (1 or 2), for returning results
+        in the same form.
+    """
+    _refuse_masked(x, name)
+    if isinstance(x, (list, tuple)) and len(x) > 0 and all(
+        isinstance(item, (Sequence, np.ndarray)) and not isinstance(item, (str, bytes))
+        for item in x
+    ) and not all(np.ndim(item) == 0 for item in x):
+        items = [
+            _parse_one(item, f"{name}[{p}]" if len(x) > 1 else name, purpose)
+            for p, item in enumerate(x)
+        ]
+        if len(items) > 1 and all(item.shape[1] == 1 for item in items):
+            raise _column_vector_error(name, (len(items), 1))
+        channels = sorted({item.shape[0] for item in items})
+        if len(channels) > 1:
+            raise ValueError(
+                f"All experiments of `{name}` must have the same number of "
+                f"channels. Got {channels}. Pass the same channels in every "
+                "experiment."
+            )
+        lengths = sorted({item.shape[1] for item in items})
+        if len(lengths) > 1:
+            raise ValueError(
+                f"All records of `{name}` must have equal length. Got lengths "
+                f"{lengths}. Trim the records to a common length."
+            )
+        item_ndim = tuple(int(np.ndim(item)) for item in x)
+        return np.stack(items), "list", item_ndim
+    if isinstance(x, np.ndarray) and x.ndim == 3:
+        if x.shape[0] == 0:
+            raise ValueError(f"`{name}` is empty. Pass a record with samples.")
+        items = [
+            _parse_one(x[p], f"{name}[{p}]" if x.shape[0] > 1 else name, purpose)
+            for p in range(x.shape[0])
+        ]
+        return np.stack(items), "3d", (2,) * x.shape[0]
+    if not isinstance(x, np.ndarray):
+        try:
+            arr = np.asarray(x)
+        except Exception:  # pragma: no cover - numpy raises many types
+            arr = None
+        if arr is not None and arr.ndim == 3:
+            return parse_record_set(arr, name, purpose=purpose)
+    data = _parse_one(x, name, purpose)
+    form = "2d" if np.ndim(x) == 2 else "1d"
+    return data[None], form, (2 if form == "2d" else 1,)
+
+
+@dataclass(frozen=True)
+class Records:
+    """Fast inputs and slow outputs of one or several experiments, parsed once.
+
+    Every estimator parses ``u_h``/``y_l`` with :func:`check_records` into
+    this object; the layers below work on its 3-D arrays.
+
+    Attributes
+    ----------
+    u : ndarray of shape (P, n_u, N), float
+    y : ndarray of shape (P, n_y, M), float
+    F : int
+        ``N = F M``.
+    u_form, y_form : {"1d", "2d", "3d", "list"}
+        How ``u_h`` and ``y_l`` were given.
+    u_item_ndim : tuple of int
+        ``ndim`` of each input experiment as given (for results in that form).
+    """
+
+    u: np.ndarray
+    y: np.ndarray
+    F: int
+    u_form: str = "1d"
+    y_form: str = "1d"
+    u_item_ndim: tuple = (1,)
+
+    @property
+    def n_experiments(self) -> int:
+        """``P``."""
+        return self.u.shape[0]
+
+    @property
+    def n_inputs(self) -> int:
+        """``n_u``."""
+        return self.u.shape[1]
+
+    @property
+    def n_outputs(self) -> int:
+        """``n_y``."""
+        return self.y.shape[1]
+
+    @property
+    def n_samples(self) -> int:
+        """``N``."""
+        return self.u.shape[2]
+
+    @property
+    def n_slow(self) -> int:
+        """``M``."""
+        return self.y.shape[2]
+
+    @property
+    def is_siso(self) -> bool:
+        """True when ``n_u == n_y == 1``."""
+        return self.n_inputs == 1 and self.n_outputs == 1
+
+    @property
+    def two_d_given(self) -> bool:
+        """True when ``u_h`` or ``y_l`` was a 2-D array of several channels."""
+        return (self.u_form == "2d" and self.n_inputs > 1) or (
+            self.y_form == "2d" and self.n_outputs > 1
+        )
+
+    def hint(self) -> str:
+        """:data:`SEVERAL_EXPERIMENTS_HINT` when a 2-D array with several rows
+        was given (a message about a shape that does not fit adds it), else
+        an empty string."""
+        return " " + SEVERAL_EXPERIMENTS_HINT if self.two_d_given else ""
+
+    def siso_stacks(self, who: str) -> tuple[np.ndarray, np.ndarray]:
+        """The records as (P, N) and (P, M) stacks, for SISO-only code.
+
+        Raises
+        ------
+        ValueError
+            When there is more than one input or output channel.
+        """
+        if not self.is_siso:
+            raise ValueError(
+                f"{who} handles one input and one output channel only. Got "
+                f"{self.n_inputs} input and {self.n_outputs} output channel(s)."
+                + self.hint()
+                + " Select one channel of each for a MIMO system."
+            )
+        return self.u[:, 0, :], self.y[:, 0, :]
+
+
+def format_like_input(y: np.ndarray, form: str, item_ndim: tuple) -> object:
+    """Return per-experiment outputs (P, n_y, M) in the form of the input.
+
+    A 1-D input with one output gives 1-D; a 2-D input (or a 1-D input with
+    several outputs) gives (n_y, M); 3-D gives (P, n_y, M); a list gives a
+    list of such records.
+    """
+    def one(record, ndim):
+        return record[0] if (ndim == 1 and record.shape[0] == 1) else record
+
+    if form == "list":
+        return [one(y[p], item_ndim[p]) for p in range(y.shape[0])]
+    if form == "3d":
+        return y
+    return one(y[0], 1 if form == "1d" else 2)
+
+
+def check_record_stack(x, name: str, *, purpose: str = "fitting") -> np.ndarray:
+    """Validate the record(s) of one channel and return them as (P, n).
+
+    Parameters
+    ----------
+    x : array-like or list
+        A 1-D record, a (1, n) record, a list of 1-D records or a (P, 1, n)
+        array (see :func:`parse_record_set`).
     name : str
         How the messages call it.
     purpose : str, default="fitting"
@@ -219,34 +421,27 @@ def check_record_stack(x, name: str, *, purpose: str = "fitting") -> np.ndarray:
     -------
     ndarray of shape (n_experiments, n_samples)
     """
-    rows = _as_record_list(x, name)
-    several = len(rows) > 1
-    checked = [
-        check_signal(row, f"{name}[{p}]" if several else name, purpose=purpose)
-        for p, row in enumerate(rows)
-    ]
-    lengths = sorted({len(row) for row in checked})
-    if len(lengths) > 1:
+    data, form, _ = parse_record_set(x, name, purpose=purpose)
+    if data.shape[1] != 1:
+        extra = " " + SEVERAL_EXPERIMENTS_HINT if form == "2d" else ""
         raise ValueError(
-            f"All records of `{name}` must have equal length. Got lengths "
-            f"{lengths}. Trim the records to a common length."
+            f"`{name}` must hold one channel. Got {data.shape[1]} channels."
+            + extra
         )
-    if several and lengths == [1]:
-        raise _column_vector_error(name, (len(checked), 1))
-    return np.vstack(checked)
+    return data[:, 0, :]
 
 
-def check_records(
-    u_h, y_l, F, *, purpose: str = "fitting"
-) -> tuple[np.ndarray, np.ndarray, int]:
-    """Validate one or several experiments.
+def check_records(u_h, y_l, F, *, purpose: str = "fitting") -> Records:
+    """Validate one or several experiments into a :class:`Records`.
 
     Parameters
     ----------
-    u_h : array-like of shape (n_samples,) or (n_experiments, n_samples), or list
-        Fast-rate input record(s).
-    y_l : array-like of shape (n_slow,) or (n_experiments, n_slow), or list
-        Slow-rate output record(s), ``n_samples == F * n_slow``.
+    u_h : array-like or list
+        Fast-rate input record(s): ``(N,)``, ``(n_u, N)``, ``(P, n_u, N)`` or
+        a list of ``P`` records (see :func:`parse_record_set`).
+    y_l : array-like or list
+        Slow-rate output record(s), likewise with ``n_y`` channels and
+        ``n_samples == F * n_slow``.
     F : int
         Downsampling factor.
     purpose : str, default="fitting"
@@ -254,28 +449,25 @@ def check_records(
 
     Returns
     -------
-    u : ndarray of shape (n_experiments, n_samples)
-    y : ndarray of shape (n_experiments, n_slow)
-    F : int
+    Records
     """
     F = check_downsampling_factor(F)
-    n_u = len(_as_record_list(u_h, "u_h"))
-    n_y = len(_as_record_list(y_l, "y_l"))
-    if n_u != n_y:
+    u, u_form, u_ndim = parse_record_set(u_h, "u_h", purpose=purpose)
+    y, y_form, _ = parse_record_set(y_l, "y_l", purpose=purpose)
+    records = Records(u, y, F, u_form, y_form, u_ndim)
+    if u.shape[0] != y.shape[0]:
         raise ValueError(
-            f"u_h holds {n_u} experiment(s) but y_l holds {n_y}. "
-            "Pass one slow output record per input record."
+            f"u_h holds {u.shape[0]} experiment(s) but y_l holds {y.shape[0]}. "
+            "Pass one slow output record per input record." + records.hint()
         )
-    u = check_record_stack(u_h, "u_h", purpose=purpose)
-    y = check_record_stack(y_l, "y_l", purpose=purpose)
-    N, M = u.shape[1], y.shape[1]
+    N, M = u.shape[2], y.shape[2]
     if N != F * M:
         raise ValueError(
             f"The fast input has N={N} samples and the slow output M={M}, but "
             f"N must equal F*M = {F}*{M} = {F * M}. Check F or trim u_h to "
-            f"{F * M} samples (y_l(m) must be y_h(m*F))."
+            f"{F * M} samples (y_l(m) must be y_h(m*F))." + records.hint()
         )
-    return u, y, F
+    return records
 
 
 #: Names of the local-model degrees as LRMBeyondNyquist calls them.
@@ -297,12 +489,16 @@ def check_local_degrees(
     n_slow: int,
     n_experiments: int = 1,
     parameter_names: dict | None = None,
+    n_inputs: int = 1,
+    hint: str = "",
 ) -> dict:
     """Check that the local problems are well posed and return the degrees.
 
     The conditions are eq. (uniqueConditions) of the paper, generalised to
     ``P`` experiments that share the system parameters and each have their own
-    transient: ``P (2n+1) >= (R_g+1) F + P (R_t+1) + R_e`` and ``2n+1 <= M``.
+    transient, and to ``n_u`` inputs (the local models of all inputs over all
+    ``F`` bands in one problem per output row):
+    ``P (2n+1) >= (R_g+1) F n_u + P (R_t+1) + R_e`` and ``2n+1 <= M``.
 
     Parameters
     ----------
@@ -319,6 +515,10 @@ def check_local_degrees(
         messages (e.g. LPM calls ``num_degree`` ``degree``); a name of ``None``
         marks a setting the user cannot change (LPM's ``den_degree = 0``).
         Default: :data:`LRM_PARAMETER_NAMES`.
+    n_inputs : int, default=1
+        ``n_u``.
+    hint : str, default=""
+        Appended to the messages (e.g. :meth:`Records.hint`).
 
     Returns
     -------
@@ -339,16 +539,17 @@ def check_local_degrees(
             f"The window 2*{names['half_window']}+1 = {window} slow bins is wider "
             f"than the slow record (M={n_slow} bins). Reduce "
             f"{names['half_window']} to at most {max_half_window} or measure a "
-            "longer record."
+            "longer record." + hint
         )
     P = n_experiments
-    n_params = (Rg + 1) * F + P * (Rt + 1) + Re
+    n_params = (Rg + 1) * F * n_inputs + P * (Rt + 1) + Re
     n_equations = P * window
     if n_equations < n_params:
         raise ValueError(
             _too_few_equations_message(
-                names, n, Rg, Rt, Re, F, P, n_params, n_equations, max_half_window
-            )
+                names, n, Rg, Rt, Re, F, P, n_params, n_equations, max_half_window,
+                n_inputs,
+            ) + hint
         )
     return {
         "half_window": n,
@@ -359,13 +560,14 @@ def check_local_degrees(
 
 
 def _too_few_equations_message(
-    names, n, Rg, Rt, Re, F, P, n_params, n_equations, max_half_window
+    names, n, Rg, Rt, Re, F, P, n_params, n_equations, max_half_window, n_inputs=1
 ) -> str:
     """Say how many equations and parameters there are, and what to change."""
     num, tr, den = names["num_degree"], names["transient_degree"], names["den_degree"]
     times_p = f"{P}*" if P > 1 else ""
-    formula = f"({num}+1)*F + {times_p}({tr}+1)"
-    values = f"({Rg}+1)*{F} + {times_p}({Rt}+1)"
+    times_u = "*n_u" if n_inputs > 1 else ""
+    formula = f"({num}+1)*F{times_u} + {times_p}({tr}+1)"
+    values = f"({Rg}+1)*{F}{f'*{n_inputs}' if n_inputs > 1 else ''} + {times_p}({Rt}+1)"
     if den is not None:
         formula += f" + {den}"
         values += f" + {Re}"
@@ -379,12 +581,28 @@ def _too_few_equations_message(
             f"The record allows {names['half_window']} <= {max_half_window} only, "
             f"so {lower} (or measure a longer record)."
         )
+    if n_inputs > 1 or P > 1:
+        fix += _experiments_needed(n, Rg, Rt, Re, F, n_inputs, P)
     equations = f"{P}*(2*{n}+1)" if P > 1 else f"2*{n}+1"
     return (
         f"Too few equations for the parameters: the window gives {equations} = "
         f"{n_equations} equations but the local model has {formula} = {values} "
         f"= {n_params} parameters (eq. uniqueConditions needs at least as many "
         f"equations). {fix}"
+    )
+
+
+def _experiments_needed(n, Rg, Rt, Re, F, n_inputs, P) -> str:
+    """The number of experiments that makes the problem square or better."""
+    per_experiment = 2 * n - Rt  # equations minus transient parameters
+    shared = (Rg + 1) * F * n_inputs + Re
+    if per_experiment <= 0:
+        return ""
+    need_p = int(np.ceil(shared / per_experiment))
+    return (
+        f" With half_window={n}, at least {need_p} experiments "
+        f"(records with different inputs, e.g. lrmfrf.signals."
+        f"orthogonal_multisines) give enough equations."
     )
 
 

@@ -24,7 +24,7 @@ from .solvers import (
     solve_local_least_squares,
     solve_local_normal_equations,
 )
-from .windows import LocalModelLayout, local_regressor
+from .windows import LocalModelLayout, band_indices, local_regressor
 
 __all__ = [
     "SOLVERS",
@@ -65,9 +65,11 @@ class LocalModelFit:
     ----------
     slow_bins : ndarray of shape (B,)
     theta : ndarray of shape (B, n_params), complex
-    system : ndarray of shape (B, F), complex
-        ``G(k+fM)`` for each window centre ``k`` and band ``f``.
-    system_var : ndarray of shape (B, F), float
+    system : ndarray of shape (B, n_bands), complex
+        ``G(k+fM)`` for each window centre ``k`` and band ``f`` (``n_bands =
+        F``); with ``n_u`` inputs ``G_i(k+fM)`` at band ``b = i F + f`` of
+        ``n_bands = F n_u`` (see :func:`lrmfrf.windows.band_indices`).
+    system_var : ndarray of shape (B, n_bands), float
     transient : ndarray of shape (B, P), complex
         Transient value at the window centre (in units of ``Y_l``).
     noise_var : ndarray of shape (B,), float
@@ -75,6 +77,9 @@ class LocalModelFit:
     well_posed : ndarray of shape (B,), bool
     excited : ndarray of shape (B,), bool
     leverage : ndarray of shape (B, n_equations) or None
+    system_cov : ndarray of shape (B, n_bands, n_bands), complex, or None
+        Lemma 2 covariance ``E[dG_b conj(dG_c)]`` of the band values (when
+        requested with ``return_cov``).
     """
 
     layout: LocalModelLayout
@@ -88,6 +93,7 @@ class LocalModelFit:
     well_posed: np.ndarray
     excited: np.ndarray
     leverage: np.ndarray | None = None
+    system_cov: np.ndarray | None = None
 
 
 def dft(x: np.ndarray) -> np.ndarray:
@@ -246,6 +252,7 @@ def rescale_local_fit(
         transient=scale_by_power_of_two(local_fit.transient, y_exponent),
         noise_var=scale_by_power_of_two(local_fit.noise_var, 2 * y_exponent),
         rss=scale_by_power_of_two(local_fit.rss, 2 * y_exponent),
+        system_cov=scale_by_power_of_two(local_fit.system_cov, 2 * system_exponent),
     )
 
 
@@ -259,21 +266,22 @@ def window_excitation(U: np.ndarray, slow_bins: np.ndarray, layout) -> np.ndarra
 
     Returns
     -------
-    ndarray of shape (B, F)
-        ``sum_{p,r} |U_p(k+r+fM)|^2`` divided by its average over all windows.
+    ndarray of shape (B, n_bands)
+        ``sum_{p,r} |U_{p,i}(k+r+fM)|^2`` divided by its average over all
+        windows and bands of input ``i`` (band ``b = i F + f``).
     """
-    P, N = U.shape
+    n_u = layout.n_inputs
+    N = U.shape[1] // n_u
     M = N // layout.F
-    energy = np.sum(np.abs(U) ** 2, axis=0)
+    energy = np.sum(np.abs(U) ** 2, axis=0).reshape(n_u, N)
     n = layout.half_window
-    padded = np.concatenate([energy[N - n :], energy, energy[:n]])
-    csum = np.concatenate([[0.0], np.cumsum(padded)])
-    moving = csum[layout.window :] - csum[: -layout.window]  # (N,) centred sums
-    reference = layout.window * energy.mean()
-    if reference == 0.0:
-        return np.zeros((slow_bins.size, layout.F))
-    idx = (slow_bins[:, None] + M * np.arange(layout.F)) % N
-    return moving[idx] / reference
+    padded = np.concatenate([energy[:, N - n :], energy, energy[:, :n]], axis=1)
+    csum = np.concatenate([np.zeros((n_u, 1)), np.cumsum(padded, axis=1)], axis=1)
+    moving = csum[:, layout.window :] - csum[:, : -layout.window]  # centred sums
+    reference = layout.window * energy.mean(axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        relative = np.where(reference > 0, moving / reference, 0.0).ravel()
+    return relative[band_indices(slow_bins, layout, M)]
 
 
 def fit_local_models(
@@ -288,15 +296,19 @@ def fit_local_models(
     solver: str = "auto",
     refine_steps: int = 1,
     backend: str = "auto",
+    return_cov: bool = False,
 ) -> LocalModelFit:
     """Closed-form local rational models beyond the Nyquist frequency.
 
     Parameters
     ----------
-    U : ndarray of shape (P, N), complex
-        Unnormalised DFT (``np.fft.fft``) of the fast inputs.
+    U : ndarray of shape (P, n_u N), complex
+        Unnormalised DFT (``np.fft.fft``) of the fast inputs, the ``n_u``
+        inputs of each experiment concatenated (``(P, N)`` for one input; see
+        :func:`lrmfrf.windows.band_indices`).
     Y : ndarray of shape (P, M), complex
-        Unnormalised DFT of the slow outputs, ``N = F M``.
+        Unnormalised DFT of the slow outputs of one output channel,
+        ``N = F M``.
     layout : LocalModelLayout
     slow_bins : ndarray of shape (B,), optional
         Window centres in ``0..M-1``; default ``0..M//2``.
@@ -322,6 +334,9 @@ def fit_local_models(
         the compiled kernel when numba is installed, ``LRMFRF_DISABLE_NUMBA``
         is not set and there are enough windows to pay for it
         (:data:`lrmfrf.solvers.COMPILED_MIN_WORK`). Ignored by ``"qr"``.
+    return_cov : bool, default=False
+        Also return the Lemma 2 covariance of the band values
+        (``LocalModelFit.system_cov``).
 
     Returns
     -------
@@ -349,6 +364,9 @@ def fit_local_models(
     chunk_size = max(1, chunk_size)
     # Identifiability of G is decided by the input and transient columns.
     kwargs = {"rank_columns": layout.n_system + layout.n_transient}
+    nb = layout.n_bands
+    if return_cov:
+        kwargs["cov_columns"] = nb
     if rank_tol is not None:
         kwargs["rank_tol"] = rank_tol
 
@@ -375,17 +393,23 @@ def fit_local_models(
         _joined([getattr(s, name) for s in parts])
         for name in ("theta", "gram_inv_diag", "rss", "well_posed")
     )
+    system_cov = None
+    if return_cov:
+        lead = _joined([s.lead_cov for s in parts])
+        system_cov = F**2 * lead * noise_variance(rss, layout.dof)[:, None, None]
     excited = (window_excitation(U, slow_bins, layout) > EXCITATION_TOL).all(axis=1)
     well_posed = well_posed & excited
     leverage = _joined([s.leverage for s in parts]) if return_leverage else None
     noise_var = noise_variance(rss, layout.dof)
-    system = F * theta[:, :F]
-    system_var = lemma2_variance(gram_inv_diag[:, :F], noise_var, F)
+    system = F * theta[:, :nb]
+    system_var = lemma2_variance(gram_inv_diag[:, :nb], noise_var, F)
     transient_cols = [layout.transient_column(p) for p in range(layout.n_experiments)]
     transient = theta[:, transient_cols]
     bad = np.flatnonzero(~well_posed)
     for arr in (theta, system, system_var, transient, noise_var, rss):
         arr[bad] = np.nan
+    if system_cov is not None:
+        system_cov[bad] = np.nan
     fit = LocalModelFit(
         layout=layout,
         slow_bins=slow_bins,
@@ -398,6 +422,7 @@ def fit_local_models(
         well_posed=well_posed,
         excited=excited,
         leverage=leverage,
+        system_cov=system_cov,
     )
     return rescale_local_fit(fit, u_exponent, y_exponent)
 
@@ -407,7 +432,9 @@ def default_chunk_size(layout: LocalModelLayout, solver: str = "qr") -> int:
     if solver != "normal":
         return qr_chunk_size(layout)
     p, L = layout.n_params, layout.window
-    per_window = 16 * (3 * p * p + 6 * L * (layout.F + 2) * layout.n_experiments)
+    per_window = 16 * (
+        3 * p * p + 6 * L * (layout.n_bands + 2) * layout.n_experiments
+    )
     return max(1, CHUNK_BYTES // per_window)
 
 

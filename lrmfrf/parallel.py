@@ -86,8 +86,9 @@ def fit_many(
         ``LRMBeyondNyquist(half_window=18)`` or ``LRMBeyondNyquistCV()``.
     U_records : sequence of length R
         Fast inputs. Item ``i`` is anything the estimator's ``fit`` accepts as
-        ``u_h``: one record of shape (N_i,), or (P_i, N_i) / a list of
-        ``P_i`` records fitted together (shared system, own transients).
+        ``u_h``: one record of shape (N_i,) or (n_u, N_i) (channels first),
+        or ``P_i`` experiments fitted together (shared system, own
+        transients) as a (P_i, n_u, N_i) array or a list of records.
     Y_records : sequence of length R
         Slow outputs matching ``U_records`` item by item.
     F : int

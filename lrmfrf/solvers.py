@@ -73,6 +73,10 @@ class LocalSolution:
         False where ``A`` is (numerically) rank-deficient.
     leverage : ndarray of shape (B, n_equations) or None
         Diagonal of the hat matrix ``A (A^H A)^-1 A^H`` (if requested).
+    lead_cov : ndarray of shape (B, c, c), complex, or None
+        ``(A^H A)^-1`` at the leading ``c = cov_columns`` columns (the
+        window-centre values of the input bands in the layout order), when
+        requested.
     """
 
     theta: np.ndarray
@@ -80,6 +84,7 @@ class LocalSolution:
     rss: np.ndarray
     well_posed: np.ndarray
     leverage: np.ndarray | None = None
+    lead_cov: np.ndarray | None = None
 
 
 def solve_local_least_squares(
@@ -89,6 +94,7 @@ def solve_local_least_squares(
     rank_tol: float = RANK_TOL,
     return_leverage: bool = False,
     rank_columns: int | None = None,
+    cov_columns: int = 0,
 ) -> LocalSolution:
     """Solve the closed form eq. (linearSolution) for a batch of windows.
 
@@ -115,6 +121,9 @@ def solve_local_least_squares(
         because ``e(0) = 1`` fixes the factor's value at the window centre, and
         is not flagged. Exactly-zero columns beyond the block get a zero
         coefficient.
+    cov_columns : int, default=0
+        Also return ``(A^H A)^-1`` at the leading ``cov_columns`` columns
+        (``LocalSolution.lead_cov``).
 
     Returns
     -------
@@ -146,16 +155,27 @@ def solve_local_least_squares(
     qhb = np.einsum("bij,bi->bj", Q.conj(), b)
     z = np.einsum("bij,bj->bi", R_inv, qhb)
     gram_inv_eq = np.sum(np.abs(R_inv) ** 2, axis=2)
+    c = cov_columns
+    lead_eq = None
+    if c:
+        lead = R_inv[:, :c, :]
+        lead_eq = np.einsum("bck,bdk->bcd", lead, lead.conj())
     leverage = np.sum(np.abs(Q) ** 2, axis=2) if return_leverage else None
     if deficient.any():
         sel = np.flatnonzero(deficient)
-        z[sel], gram_inv_eq[sel], lev = _truncated_svd_solve(
-            A_eq[sel], b[sel], rank_tol
+        z[sel], gram_inv_eq[sel], lev, lead_sel = _truncated_svd_solve(
+            A_eq[sel], b[sel], rank_tol, c
         )
         if leverage is not None:
             leverage[sel] = lev
+        if c:
+            lead_eq[sel] = lead_sel
     theta = np.where(zero_column, 0.0, z / safe_norms)
     gram_inv_diag = gram_inv_eq / safe_norms**2
+    lead_cov = None
+    if c:
+        lead_cov = lead_eq / (safe_norms[:, :c, None] * safe_norms[:, None, :c])
+        lead_cov[~well_posed] = np.nan
     residual = b - np.einsum("bij,bj->bi", A, theta)
     rss = np.sum(np.abs(residual) ** 2, axis=1)
     bad = ~well_posed
@@ -164,10 +184,10 @@ def solve_local_least_squares(
     rss[bad] = np.nan
     if leverage is not None:
         leverage[bad] = np.nan
-    return LocalSolution(theta, gram_inv_diag, rss, well_posed, leverage)
+    return LocalSolution(theta, gram_inv_diag, rss, well_posed, leverage, lead_cov)
 
 
-def _truncated_svd_solve(A_eq, b, rank_tol):
+def _truncated_svd_solve(A_eq, b, rank_tol, cov_columns=0):
     """Minimum-norm least squares of equilibrated, rank-deficient windows.
 
     Singular values below ``rank_tol`` times the largest are dropped. The
@@ -182,6 +202,8 @@ def _truncated_svd_solve(A_eq, b, rank_tol):
     gram_inv_eq : ndarray of shape (B, p)
         Diagonal of ``(A_eq^H A_eq)^+``.
     leverage : ndarray of shape (B, n_equations)
+    lead_cov : ndarray of shape (B, c, c) or None
+        ``(A_eq^H A_eq)^+`` at the leading ``c = cov_columns`` columns.
     """
     U, s, Vh = np.linalg.svd(A_eq, full_matrices=False)
     keep = s > rank_tol * s[:, :1]
@@ -190,7 +212,11 @@ def _truncated_svd_solve(A_eq, b, rank_tol):
     z = np.einsum("bji,bj->bi", Vh.conj(), inv_s * uhb)
     gram_inv_eq = np.einsum("bji,bj->bi", np.abs(Vh) ** 2, inv_s**2)
     leverage = np.sum(np.abs(U) ** 2 * keep[:, None, :], axis=2)
-    return z, gram_inv_eq, leverage
+    lead_cov = None
+    if cov_columns:
+        lead = Vh[:, :, :cov_columns]
+        lead_cov = np.einsum("bkc,bk,bkd->bcd", lead.conj(), inv_s**2, lead)
+    return z, gram_inv_eq, leverage, lead_cov
 
 
 def noise_variance(rss: np.ndarray, dof: int) -> np.ndarray:
@@ -246,6 +272,7 @@ def solve_local_normal_equations(
     fallback_tol: float = CHOLESKY_FALLBACK_TOL,
     rank_columns: int | None = None,
     backend: str = "auto",
+    cov_columns: int = 0,
 ) -> LocalSolution:
     """Fast closed form eq. (linearSolution) by structured normal equations.
 
@@ -289,6 +316,9 @@ def solve_local_normal_equations(
         ``0`` and the problem is large enough to pay for it
         (:data:`COMPILED_MIN_WORK`), else ``"numpy"``. Both give the same
         results up to round-off.
+    cov_columns : int, default=0
+        Also return ``(A^H A)^-1`` at the leading ``cov_columns`` layout
+        columns (at most ``layout.n_bands``: the window-centre band values).
 
     Returns
     -------
@@ -302,22 +332,27 @@ def solve_local_normal_equations(
     slow_bins = np.asarray(slow_bins, dtype=int)
     backend = resolve_backend(backend, slow_bins.size, layout.n_params)
     windows = StructuredWindows(U, Y, slow_bins, layout)
-    n_centre = layout.F + layout.n_experiments
+    n_centre = layout.n_bands + layout.n_experiments
+    c = cov_columns
     if backend == "numba":
         weights, col_base, tables = _compiled_tables(layout)
-        theta, rss, centre_var, fast = _compiled.solve_windows(
-            U, Y, slow_bins, weights, col_base, layout.F, n_centre,
+        theta, rss, centre_cov, fast = _compiled.solve_windows(
+            U.reshape(U.shape[0], layout.n_inputs, -1), Y, slow_bins, weights,
+            col_base, layout.n_bands, n_centre,
             fallback_tol=fallback_tol, refine_tol=REFINEMENT_TOL,
             refine_steps=refine_steps, tables=tables,
-            to_layout=windows.to_layout_matrix,
+            to_layout=windows.to_layout_matrix, return_cov=True,
         )
     else:
-        theta, rss, centre_var, fast = _normal_equations_numpy(
+        theta, rss, centre_cov, fast = _normal_equations_numpy(
             windows, n_centre, fallback_tol, refine_steps
         )
         theta = windows.to_layout(theta)
+    centre_var = np.real(np.diagonal(centre_cov, axis1=1, axis2=2))
     gram_inv_diag = np.full((slow_bins.size, layout.n_params), np.nan)
     gram_inv_diag[:, windows.order[-n_centre:]] = centre_var
+    # the internal centre columns start with the bands in layout order
+    lead_cov = np.array(centre_cov[:, :c, :c]) if c else None
     well_posed = fast.copy()
 
     slow = np.flatnonzero(~fast)
@@ -326,13 +361,15 @@ def solve_local_normal_equations(
         part = slow[start : start + chunk]
         A, b = local_regressor(U, Y, slow_bins[part], layout)
         qr = solve_local_least_squares(
-            A, b, rank_tol=rank_tol, rank_columns=rank_columns
+            A, b, rank_tol=rank_tol, rank_columns=rank_columns, cov_columns=c
         )
         theta[part] = qr.theta
         gram_inv_diag[part] = qr.gram_inv_diag
         rss[part] = qr.rss
         well_posed[part] = qr.well_posed
-    return LocalSolution(theta, gram_inv_diag, rss, well_posed, None)
+        if c:
+            lead_cov[part] = qr.lead_cov
+    return LocalSolution(theta, gram_inv_diag, rss, well_posed, None, lead_cov)
 
 
 def qr_chunk_size(layout: LocalModelLayout) -> int:
@@ -380,8 +417,9 @@ def _normal_equations_numpy(windows, n_centre, fallback_tol, refine_steps):
 
     tail = chol[:, -n_centre:, -n_centre:]
     tail_inv = np.linalg.inv(tail)
-    centre_var = np.sum(tail_inv.real**2 + tail_inv.imag**2, axis=1)
-    return theta, rss, centre_var, fast
+    # (L L^H)^-1 at the trailing block is tail_inv^H tail_inv
+    centre_cov = np.einsum("bkc,bkd->bcd", tail_inv.conj(), tail_inv)
+    return theta, rss, centre_cov, fast
 
 
 def resolve_backend(
@@ -426,10 +464,11 @@ def _compiled_tables(layout: LocalModelLayout):
     """Column weights, bases and moment tables of a layout (data-independent)."""
     P = layout.n_experiments
     empty = StructuredWindows(
-        np.zeros((P, layout.F)), np.zeros((P, 1)), np.zeros(0, dtype=int), layout
+        np.zeros((P, layout.n_bands)), np.zeros((P, 1)), np.zeros(0, dtype=int),
+        layout,
     )
     weights, col_base = empty.column_weights()
-    tables = _compiled.moment_tables(weights, col_base, layout.F, P)
+    tables = _compiled.moment_tables(weights, col_base, layout.n_bands, P)
     return weights, col_base, tables
 
 

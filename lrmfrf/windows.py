@@ -19,7 +19,7 @@ from functools import cached_property
 
 import numpy as np
 
-__all__ = ["LocalModelLayout", "window_offsets", "local_regressor"]
+__all__ = ["LocalModelLayout", "band_indices", "window_offsets", "local_regressor"]
 
 
 @dataclass(frozen=True)
@@ -37,12 +37,17 @@ class LocalModelLayout:
     n_experiments : int, default=1
         ``P`` records that share the system parameters; each has its own
         transient columns.
+    n_inputs : int, default=1
+        ``n_u`` inputs. The local problem of one output row holds the local
+        models of all inputs over all ``F`` bands: ``F n_u`` "bands", band
+        ``b = i F + f`` being input ``i`` at ``U_i(k+r+fM)`` (see
+        :func:`band_indices`). Nothing else depends on ``n_u``.
 
     Notes
     -----
     Column order (paper's eq. SummedParameters, Kronecker order "power outer,
-    band inner"): the coefficient of ``x^s`` for band ``f`` is column
-    ``s*F + f``; then the transient polynomial of experiment ``p`` at columns
+    band inner"): the coefficient of ``x^s`` for band ``b`` is column
+    ``s*n_bands + b``; then the transient polynomial of experiment ``p`` at columns
     ``n_system + p*(R_t+1) + s``; then the denominator coefficients ``e_1..e_Re``.
     """
 
@@ -52,6 +57,12 @@ class LocalModelLayout:
     transient_degree: int
     den_degree: int
     n_experiments: int = 1
+    n_inputs: int = 1
+
+    @property
+    def n_bands(self) -> int:
+        """Number of input bands of the local problem, ``F n_u``."""
+        return self.F * self.n_inputs
 
     @property
     def window(self) -> int:
@@ -60,8 +71,8 @@ class LocalModelLayout:
 
     @property
     def n_system(self) -> int:
-        """Number of system-numerator columns, ``(R_g+1) F``."""
-        return (self.num_degree + 1) * self.F
+        """Number of system-numerator columns, ``(R_g+1) F n_u``."""
+        return (self.num_degree + 1) * self.n_bands
 
     @property
     def n_transient(self) -> int:
@@ -94,6 +105,33 @@ class LocalModelLayout:
         return self.n_system + experiment * (self.transient_degree + 1)
 
 
+def band_indices(centre: np.ndarray, layout: LocalModelLayout, n_slow: int):
+    """Indices into the flattened inputs of the bands at slow bins ``centre``.
+
+    The inputs of all experiments are kept as (P, n_u N) arrays (input ``i``
+    at ``i N .. (i+1) N - 1``; SISO: the (P, N) DFT itself). Band
+    ``b = i F + f`` at slow bin ``j`` is input ``i`` at fast bin
+    ``(j + fM) mod N``.
+
+    Parameters
+    ----------
+    centre : ndarray of int, any shape
+        Slow bins ``j`` (any integers; taken periodically).
+    layout : LocalModelLayout
+    n_slow : int
+        ``M``.
+
+    Returns
+    -------
+    ndarray of shape centre.shape + (n_bands,), int
+    """
+    F = layout.F
+    N = F * n_slow
+    b = np.arange(layout.n_bands)
+    offset = (b // F) * N
+    return offset + (centre[..., None] + n_slow * (b % F)) % N
+
+
 def window_offsets(half_window: int) -> tuple[np.ndarray, np.ndarray]:
     """Return the integer offsets ``r`` and the scaled offsets ``x = r/n``.
 
@@ -113,10 +151,12 @@ def local_regressor(
 
     Parameters
     ----------
-    U : ndarray of shape (P, N), complex
-        Unnormalised DFT of the fast input of each experiment.
+    U : ndarray of shape (P, n_u N), complex
+        Unnormalised DFT of the fast inputs of each experiment, inputs
+        concatenated (see :func:`band_indices`; ``(P, N)`` for one input).
     Y : ndarray of shape (P, M), complex
-        Unnormalised DFT of the slow output of each experiment.
+        Unnormalised DFT of the slow output (one output channel) of each
+        experiment.
     slow_bins : ndarray of shape (B,), int
         Window centres ``k`` in ``0..M-1``.
     layout : LocalModelLayout
@@ -129,17 +169,16 @@ def local_regressor(
     b : ndarray of shape (B, P*(2n+1)), complex
         The measured ``Y_l(k+r)``.
     """
-    P, N = U.shape
+    P = U.shape[0]
     M = Y.shape[1]
-    F = layout.F
     r, x = window_offsets(layout.half_window)
     L = r.size
     B = slow_bins.size
     centre = slow_bins[:, None] + r[None, :]  # (B, L)
     slow_idx = centre % M
-    fast_idx = (centre[:, :, None] + M * np.arange(F)) % N  # (B, L, F)
+    fast_idx = band_indices(centre, layout, M)  # (B, L, n_bands)
 
-    u_win = np.moveaxis(U[:, fast_idx], 0, 1)  # (B, P, L, F)
+    u_win = np.moveaxis(U[:, fast_idx], 0, 1)  # (B, P, L, n_bands)
     y_win = np.moveaxis(Y[:, slow_idx], 0, 1)  # (B, P, L)
 
     powers_g = x[:, None] ** np.arange(layout.num_degree + 1)  # (L, Rg+1)
@@ -239,7 +278,8 @@ class StructuredWindows:
 
     Parameters
     ----------
-    U : ndarray of shape (P, N), complex
+    U : ndarray of shape (P, n_u N), complex
+        Inputs concatenated (see :func:`band_indices`).
     Y : ndarray of shape (P, M), complex
     slow_bins : ndarray of shape (B,), int, in ``0..M-1``
     layout : LocalModelLayout
@@ -263,12 +303,11 @@ class StructuredWindows:
 
     @cached_property
     def u_win(self) -> np.ndarray:
-        """Inputs on the windows, ``U(k+r+fM)``, shape (P, F, B, 2n+1)."""
+        """Inputs on the windows, ``U_i(k+r+fM)``, shape (P, n_bands, B, 2n+1)."""
         U, Y, slow_bins = self._data
-        N, M = U.shape[1], Y.shape[1]
         r, _ = window_offsets(self.layout.half_window)
-        band = M * np.arange(self.layout.F)[:, None, None]
-        return U[:, (slow_bins[:, None] + r + band) % N]
+        idx = band_indices(slow_bins[:, None] + r, self.layout, Y.shape[1])
+        return U[:, np.moveaxis(idx, -1, 0)]
 
     @cached_property
     def y_win(self) -> np.ndarray:
@@ -280,7 +319,7 @@ class StructuredWindows:
     def _column_groups(self):
         """(kind, index, layout columns) of each group, centre columns last."""
         lay = self.layout
-        F, Rg, Rt = lay.F, lay.num_degree, lay.transient_degree
+        F, Rg, Rt = lay.n_bands, lay.num_degree, lay.transient_degree
         groups = []
         for f in range(F):
             groups.append(("num", f, np.arange(1, Rg + 1) * F + f))
@@ -407,7 +446,7 @@ class StructuredWindows:
         """
         values = self._polynomials(theta)
         model = 0
-        for f in range(self.layout.F):
+        for f in range(self.layout.n_bands):
             if ("num", f) in values:
                 model = model + values[("num", f)] * self.u_win[:, f]
         if ("den", 0) in values:
@@ -452,12 +491,13 @@ class StructuredWindows:
         weights : ndarray of shape (2n+1, n_params), float
             ``w(r)`` of each column on the window.
         col_base : ndarray of shape (n_params,), int
-            The base sequence each column multiplies: ``f`` for the input band
-            ``U(k+r+fM)``, ``F+p`` for the transient constant of experiment
-            ``p``, ``F+P`` for ``-Y_l(k+r)`` (denominator).
+            The base sequence each column multiplies: ``b`` for the input band
+            ``b`` (:func:`band_indices`), ``n_bands+p`` for the transient
+            constant of experiment ``p``, ``n_bands+P`` for ``-Y_l(k+r)``
+            (denominator).
         """
         lay = self.layout
-        F, P = lay.F, lay.n_experiments
+        F, P = lay.n_bands, lay.n_experiments
         code = {"num": lambda i: i, "tra": lambda i: F + i, "den": lambda i: F + P}
         weights, col_base = [], []
         for kind, index, _ in self._groups:
@@ -488,7 +528,7 @@ class StructuredWindows:
         lay, b = self.layout, self.basis
         T = np.zeros((lay.n_params, lay.n_params))
         T[np.arange(lay.n_params), self.order] = 1.0
-        F = lay.F
+        F = lay.n_bands
         for f in range(F):
             cols = np.arange(lay.num_degree + 1) * F + f
             T[:, cols] = T[:, cols] @ b.num_to_monomial.T

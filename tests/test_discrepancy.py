@@ -231,7 +231,8 @@ def test_generator_no_effect_is_the_nominal_loop(stage):
     assert experiment.effects == ()
     assert _relative(frequency_response(experiment.true_system, FREQS, TS),
                      frequency_response(stage.G_y4, FREQS, TS)) < 1e-8
-    assert experiment.u_h.shape == (4, 1200) and experiment.y_l.shape == (4, 400)
+    assert experiment.u_h.shape == (4, 1, 1200)
+    assert experiment.y_l.shape == (4, 1, 400)
     assert np.isclose(experiment.u_h[0].std(), 1.44)
 
 
@@ -348,6 +349,7 @@ def test_open_loop_without_controller():
     rng = np.random.default_rng(8)
     u = np.stack([multisine(1200, rms=1.0, rng=rng) for _ in range(2)])
     y = np.stack([simulate(truth, ui, 3, snr_db=40, rng=rng).y_l for ui in u])
+    u, y = list(u), list(y)  # two experiments (a 2-D array is one record)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         report = diagnose(model, u, y, 3, sample_time=Ts, calibration_runs=6,
@@ -521,7 +523,7 @@ def small_data(stage):
     rng = np.random.default_rng(5)
     u = np.stack([multisine(1200, rms=1.44, rng=rng) for _ in range(2)])
     y = np.stack([simulate(stage.G_y4, ui, 3, snr_db=45, rng=rng).y_l for ui in u])
-    return u, y
+    return u[:, None], y[:, None]  # two experiments, 3-D (P, 1, N)
 
 
 def _call(stage, u, y, **kwargs):
@@ -636,7 +638,7 @@ def test_zero_std_everywhere_is_an_error(stage, small_data):
 
 def test_fitted_estimator_must_match_the_data(stage, small_data):
     u, y = small_data
-    est = LRMBeyondNyquist().fit(u[:, :600], y[:, :200], 3, sample_time=TS)
+    est = LRMBeyondNyquist().fit(u[..., :600], y[..., :200], 3, sample_time=TS)
     with pytest.raises(ValueError, match="does not match the data"):
         _call(stage, u, y, estimator=est)
 

@@ -110,7 +110,7 @@ def test_F_rule_shared_with_the_cli(F, exc, match):
     (lambda u: u.astype(complex), TypeError, "real time-domain signal"),
     (lambda u: u.astype(str), TypeError, "numeric array"),
     (lambda u: np.array([None] * u.size), TypeError, "numeric array"),
-    (lambda u: u.reshape(1, 2, -1), ValueError, "1-D"),
+    (lambda u: u.reshape(1, 1, 2, -1), ValueError, "1-D"),
     (lambda u: np.where(np.arange(u.size) == 5, np.nan, u), ValueError, "non-finite"),
     (lambda u: np.where(np.arange(u.size) == 7, np.inf, u), ValueError, "non-finite"),
 ])

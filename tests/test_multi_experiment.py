@@ -23,8 +23,9 @@ SMALL = {"half_window": 12, "num_degree": 2, "transient_degree": 2, "den_degree"
 
 
 def _experiments(P, rng, noise_std=0.0, n_samples=N):
+    """P SISO experiments as 3-D arrays (P, 1, N) and (P, 1, M)."""
     u = np.array([multisine(n_samples, rng=rng) for _ in range(P)])
-    return u, simulate_resonant(u, F, noise_std, rng)
+    return u[:, None], simulate_resonant(u, F, noise_std, rng)[:, None]
 
 
 def _steady_experiments(P, rng, noise_std):
@@ -34,7 +35,8 @@ def _steady_experiments(P, rng, noise_std):
     u = np.array([multisine(N, rng=rng) for _ in range(P)])
     y_h = lfilter(b, a, np.tile(u, 6), axis=1)[:, -N:]
     y = y_h[:, ::F]
-    return u, y + noise_std * rng.standard_normal(y.shape)
+    y = y + noise_std * rng.standard_normal(y.shape)
+    return u[:, None], y[:, None]
 
 
 def _fitted_arrays(est):
@@ -44,12 +46,13 @@ def _fitted_arrays(est):
 # --- the same data in different containers ------------------------------------
 
 
-def test_2d_array_list_and_tuple_give_identical_fits():
+def test_3d_array_list_and_tuple_give_identical_fits():
     rng = np.random.default_rng(0)
     u, y = _experiments(3, rng, noise_std=0.01)
     reference = LRMBeyondNyquist(**SMALL).fit(u, y, F)
     for u_in, y_in in [(list(u), list(y)), (tuple(u), tuple(y)),
-                       ([list(r) for r in u], [list(r) for r in y])]:
+                       ([list(r[0]) for r in u], [list(r[0]) for r in y]),
+                       (list(u[:, 0]), list(y[:, 0]))]:
         other = LRMBeyondNyquist(**SMALL).fit(u_in, y_in, F)
         for a, b in zip(_fitted_arrays(reference), _fitted_arrays(other), strict=True):
             np.testing.assert_array_equal(a, b)
@@ -119,7 +122,7 @@ def test_pure_noise_noise_variance_pools_all_experiments():
     for P in (1, 4):
         u = rng.standard_normal((P, N))
         y = sigma * rng.standard_normal((P, M))
-        est = LPMBeyondNyquist(half_window=12, num_degree=2).fit(u, y, F)
+        est = LPMBeyondNyquist(half_window=12, num_degree=2).fit(list(u), list(y), F)
         ratio = np.mean(est.noise_variance_) / (M * sigma**2)
         # The window estimates overlap; ~M/(2n+1) = 8 independent windows of
         # 2*dof real dof each give a relative SE below 1/sqrt(8 * 2 * dof) <= 6 %
@@ -146,7 +149,7 @@ def test_error_falls_as_inverse_sqrt_of_experiments():
         for _ in range(6):
             u = rng.standard_normal((P, N))
             y = simulate_resonant(u, F, 0.02, rng)
-            est = LRMBeyondNyquist(**SMALL).fit(u, y, F)
+            est = LRMBeyondNyquist(**SMALL).fit(list(u), list(y), F)
             sq_err.append(np.abs(est.frf_ - G) ** 2)
             var.append(est.frf_std_**2)
         rms_error[P] = np.median(np.sqrt(np.mean(sq_err, axis=0)))
@@ -167,8 +170,8 @@ def test_error_falls_as_inverse_sqrt_of_experiments_1_to_8():
         sq = []
         for _ in range(40):
             u = rng.standard_normal((P, N))
-            est = LRMBeyondNyquist(**SMALL).fit(u, simulate_resonant(u, F, 0.02, rng),
-                                                F)
+            y = simulate_resonant(u, F, 0.02, rng)
+            est = LRMBeyondNyquist(**SMALL).fit(list(u), list(y), F)
             sq.append(np.abs(est.frf_ - G) ** 2)
         rms[P] = np.median(np.sqrt(np.mean(sq, axis=0)))
     # From P to 8P the error falls by sqrt(8) = 2.83 for fixed regressors; at
@@ -234,7 +237,7 @@ def test_grid_search_over_experiments_picks_the_rational_model():
             est = LRMBeyondNyquist(half_window=12, **params).fit(u, y, F)
         true_error.append(np.median(np.abs(est.frf_ - G) / np.abs(G)))
     assert search.best_index_ == int(np.argmin(true_error)), true_error
-    # A 2-D array of experiments works the same way.
+    # A 3-D array of experiments works the same way.
     search_2d = GridSearchCV(LRMBeyondNyquist(half_window=12), grid, cv=KFold(3))
     search_2d.fit(u, y, F=F)
     np.testing.assert_allclose(search_2d.cv_results_["mean_test_score"], scores,
@@ -248,9 +251,19 @@ def test_records_of_unequal_length_are_rejected():
     rng = np.random.default_rng(11)
     u, y = _experiments(2, rng)
     with pytest.raises(ValueError, match=r"equal length. Got lengths \[597, 600\]"):
-        LRMBeyondNyquist(**SMALL).fit([u[0], u[1][:-3]], list(y), F)
+        LRMBeyondNyquist(**SMALL).fit([u[0], u[1][:, :-3]], list(y), F)
     with pytest.raises(ValueError, match=r"`y_l` must have equal length"):
-        LRMBeyondNyquist(**SMALL).fit(list(u), [y[0], y[1][:-1]], F)
+        LRMBeyondNyquist(**SMALL).fit(list(u), [y[0], y[1][:, :-1]], F)
+
+
+def test_2d_stack_of_siso_experiments_is_one_record_and_the_error_says_so():
+    """Breaking change of issue 13: a 2-D array is ONE record, channels first;
+    the old (P, N) stack of SISO experiments is read as P input channels and
+    the error says several experiments go in a list or a 3-D array."""
+    rng = np.random.default_rng(12)
+    u, y = _experiments(3, rng)
+    with pytest.raises(ValueError, match="list of records or a 3-D array"):
+        LRMBeyondNyquist(**SMALL).fit(u[:, 0], y[:, 0], F)
 
 
 def test_number_of_experiments_must_match():

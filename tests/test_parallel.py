@@ -47,6 +47,7 @@ def test_fit_many_equals_one_fit_per_record():
 def test_fit_many_items_can_be_groups_of_experiments():
     rng = np.random.default_rng(1)
     u, y = _records(3, rng, P=2)
+    u, y = u[:, :, None], y[:, :, None]  # items of 2 SISO experiments, 3-D
     fits = fit_many(LRMBeyondNyquist(**SMALL), list(u), list(y), F)
     assert [est.n_experiments_ for est in fits] == [2, 2, 2]
     np.testing.assert_array_equal(

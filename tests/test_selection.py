@@ -387,7 +387,7 @@ def test_unequal_records_and_mismatched_experiments_are_rejected():
     with pytest.raises(ValueError, match="must have equal length"):
         LRMBeyondNyquistCV(**SMALL_GRID).fit([u[0], u[1][:-3]], list(y), F)
     with pytest.raises(ValueError, match="u_h holds 2 experiment.*y_l holds 1"):
-        LRMBeyondNyquistCV(**SMALL_GRID).fit(u, y[:1], F)
+        LRMBeyondNyquistCV(**SMALL_GRID).fit(list(u), list(y[:1]), F)
 
 
 # --- scikit-learn contract and declared parameter checks -------------------------

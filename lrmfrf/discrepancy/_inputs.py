@@ -176,7 +176,7 @@ def fit_estimator(estimator, u, y, F, sample_time):
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            fitted.fit(u, y, F, sample_time=sample_time)
+            fitted.fit(list(u), list(y), F, sample_time=sample_time)
     except ValueError as exc:
         raise ValueError(
             f"the estimator could not be fitted to the data ({exc}). Record more "

@@ -300,7 +300,7 @@ def calibrate(
         fitted = clone(estimator)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            fitted.fit(u, clean + noise, F, sample_time=sample_time)
+            fitted.fit(list(u), list(clean + noise), F, sample_time=sample_time)
         frfs.append(np.asarray(fitted.frf_)[bins])
         stds.append(np.asarray(fitted.frf_std_)[bins])
     frfs, stds = np.array(frfs), np.array(stds)

@@ -75,8 +75,10 @@ class HiddenExperiment:
 
     Attributes
     ----------
-    u_h : ndarray of shape (P, N)
-    y_l : ndarray of shape (P, M)
+    u_h : ndarray of shape (P, 1, N)
+        ``P`` SISO experiments in the record convention (3-D, channels
+        second).
+    y_l : ndarray of shape (P, 1, M)
     F : int
     sample_time : float
     plant : control.StateSpace
@@ -220,7 +222,9 @@ def hidden_effect_experiment(
                       for _ in range(n_experiments)])
         sims = [simulate(system, u[p], F, snr_db=snr_db, rng=rng)
                 for p in range(n_experiments)]
-        y = np.stack([s.y_l for s in sims])
+        # P SISO experiments: 3-D (P, 1, N) and (P, 1, M) records
+        u = u[:, None, :]
+        y = np.stack([s.y_l for s in sims])[:, None, :]
         gap = math.nan
         if drawn and min_gap > 0:
             with warnings.catch_warnings():

@@ -71,9 +71,11 @@ def diagnose(
         SISO model of the plant: discrete with ``dt == sample_time`` (taken as
         the ZOH discretisation of a continuous model) or continuous
         (discretised with ZOH).
-    u_h : array-like of shape (N,) or (P, N)
-        Fast-rate input(s); several experiments give better statistics.
-    y_l : array-like of shape (M,) or (P, M)
+    u_h : array-like of shape (N,), (1, N) or (P, 1, N), or list of records
+        Fast-rate input(s) of the one input channel; several experiments
+        (a list or a 3-D array; a 2-D array is one record, channels first)
+        give better statistics.
+    y_l : array-like of shape (M,), (1, M) or (P, 1, M), or list of records
         Slow-rate output(s), ``M = N / F``.
     F : int
         Downsampling factor.
@@ -152,16 +154,18 @@ def diagnose(
     >>> from lrmfrf.simulate import simulate
     >>> Ts = 1e-3
     >>> model = control.c2d(control.tf([1.0], [1e-3, 1.0]), Ts)
-    >>> u = np.stack([multisine(600, rng=i) for i in range(2)])
-    >>> y = np.stack([simulate(control.ss(model), ui, 3, snr_db=40, rng=i).y_l
-    ...               for i, ui in enumerate(u)])
+    >>> u = [multisine(600, rng=i) for i in range(2)]  # two experiments
+    >>> y = [simulate(control.ss(model), ui, 3, snr_db=40, rng=i).y_l
+    ...      for i, ui in enumerate(u)]
     >>> report = diagnose(model, u, y, 3, rng=0,
     ...                   calibration_runs=6)  # doctest: +SKIP
     """
     rng = renamed_keyword(rng, random_state, new="rng", old="random_state")
     smoothing_bins = renamed_keyword(smoothing_bins, window, new="smoothing_bins",
                                      old="window", default=9)
-    u, y, F = check_records(u_h, y_l, F)
+    records = check_records(u_h, y_l, F)
+    u, y = records.siso_stacks("diagnose")  # (P, N), (P, M) stacks
+    F = records.F
     sample_time, source = resolve_sample_time(sample_time, plant, controller)
     settings = check_settings(
         alpha=alpha, effect_alpha=effect_alpha, ic_margin=ic_margin,

@@ -9,7 +9,12 @@ import numpy as np
 from sklearn.base import BaseEstimator
 from sklearn.exceptions import NotFittedError
 
-from .._validation import check_record_stack, check_records
+from .._validation import (
+    SEVERAL_EXPERIMENTS_HINT,
+    check_records,
+    format_like_input,
+    parse_record_set,
+)
 from ..local_models import dft, power_of_two_exponent, scale_by_power_of_two
 
 __all__ = ["FRFEstimatorMixin"]
@@ -48,76 +53,101 @@ class FRFEstimatorMixin:
     def _fast_frf(self, n_samples: int) -> np.ndarray:  # pragma: no cover
         raise NotImplementedError
 
-    def predict(self, u_h) -> np.ndarray:
+    def _n_channels(self) -> tuple[int, int]:
+        """(n_y, n_u) of the fitted FRF (1, 1 for an estimator fitted before
+        these attributes existed)."""
+        return getattr(self, "n_outputs_", 1), getattr(self, "n_inputs_", 1)
+
+    def predict(self, u_h):
         """Steady-state slow-rate output predicted by the FRF.
 
         ``Y_h(k) = G(k) U_h(k)`` on the fast DFT grid, ``y_l = y_h[::F]``
-        (periodic steady state: no transient). Bins where the input's DFT is
+        (periodic steady state: no transient). Bins where an input's DFT is
         zero (below ``1e-12`` of its largest bin) contribute nothing, so an
         input without energy at invalid bins (``valid_ == False``) can be
         predicted.
 
         Parameters
         ----------
-        u_h : array-like of shape (N,) or (P, N)
-            Fast input of the same length as the training records.
+        u_h : array-like of shape (N,), (n_u, N) or (P, n_u, N), or list
+            Fast input(s) of the same length as the training records, in the
+            record convention of ``fit``.
 
         Returns
         -------
-        ndarray of shape (M,) or (P, M)
-            Slow output in the units of the training ``y_l``.
+        ndarray or list
+            Slow output(s) in the units of the training ``y_l`` and in the
+            form of the input: (M,) for a 1-D input and one output, (n_y, M)
+            for one record otherwise, (P, n_y, M) for a 3-D input, a list of
+            records for a list.
 
         Raises
         ------
         NotFittedError
             Before ``fit``.
         ValueError
-            If the input has a different length than the training records, or
-            excites a frequency where the FRF is invalid.
+            If the input has a different length or number of channels than
+            the training records, or excites a frequency where the FRF is
+            invalid.
         """
         self._check_fitted()
+        u, form, item_ndim = parse_record_set(u_h, "u_h", purpose="predicting")
+        y = self._predict_records(u, form)
+        return format_like_input(y, form, item_ndim)
+
+    def _predict_records(self, u: np.ndarray, form: str = "3d") -> np.ndarray:
+        """Predicted slow outputs (P, n_y, M) of validated inputs (P, n_u, N)."""
         F = self.downsampling_factor_
-        single = np.ndim(u_h) == 1
-        u = check_record_stack(u_h, "u_h", purpose="predicting")
-        if u.shape[1] != self.n_samples_:
+        n_y, n_u = self._n_channels()
+        if u.shape[1] != n_u:
+            hint = " " + SEVERAL_EXPERIMENTS_HINT if form == "2d" else ""
+            raise ValueError(
+                f"The estimator was fitted with {n_u} input channel(s); u_h has "
+                f"{u.shape[1]}." + hint
+            )
+        if u.shape[2] != self.n_samples_:
             raise ValueError(
                 f"predict needs an input of the training length N="
-                f"{self.n_samples_}. Got {u.shape[1]} samples. The FRF is only "
+                f"{self.n_samples_}. Got {u.shape[2]} samples. The FRF is only "
                 "known on the training DFT grid: pass records of that length."
             )
         # G U with both normalised by powers of two (exact), scaled back last
         u_exponent = _normalise_in_place(u)
-        U = dft(u)
+        U = dft(u)  # (P, n_u, N)
         del u
-        G = self._fast_frf(self.n_samples_)
+        G = self._fast_frf(self.n_samples_).reshape(n_y, n_u, -1)
         g_exponent = power_of_two_exponent(np.nan_to_num(np.abs(G)))
         G = scale_by_power_of_two(G, -g_exponent)
-        unexcited = np.abs(U) <= _UNEXCITED_TOL * np.abs(U).max(axis=1, keepdims=True)
+        unexcited = np.abs(U) <= _UNEXCITED_TOL * np.abs(U).max(axis=2, keepdims=True)
         with np.errstate(invalid="ignore"):
-            Yh = np.where(unexcited, 0.0, G * U)
+            terms = np.where(unexcited[:, None], 0.0, G[None] * U[:, None])
+        Yh = terms[:, :, 0] if n_u == 1 else terms.sum(axis=2)  # (P, n_y, N)
         if np.isnan(Yh).any():
-            n_bad = int(np.count_nonzero(np.isnan(Yh).any(axis=0)))
+            n_bad = int(np.count_nonzero(np.isnan(Yh).any(axis=(0, 1))))
             raise ValueError(
                 f"The FRF is invalid (NaN) at {n_bad} fast DFT bin(s) this input "
                 "excites (see `valid_`). Refit with an input that excites every "
                 "band, or predict with an input that has no energy at the invalid "
                 "bins."
             )
-        y = np.fft.ifft(Yh, axis=1).real[:, ::F]
-        y = scale_by_power_of_two(y, u_exponent + g_exponent)
-        return y[0] if single else y
+        y = np.fft.ifft(Yh, axis=2).real[:, :, ::F]
+        return scale_by_power_of_two(y, u_exponent + g_exponent)
 
     def score(self, u_h, y_l) -> float:
         """R^2 of the predicted slow output against ``y_l`` (all experiments).
 
-        ``1 - sum (y_l - predict(u_h))^2 / sum (y_l - mean(y_l))^2`` over all
-        samples of all experiments; the transient in ``y_l`` is not predicted.
+        Per output channel ``o``, ``1 - sum (y_o - predict(u_h)_o)^2 / sum
+        (y_o - mean(y_o))^2`` over all samples of all experiments; the score
+        is the uniform average over the outputs (scikit-learn's
+        ``multioutput="uniform_average"``). The transient in ``y_l`` is not
+        predicted.
 
         Parameters
         ----------
-        u_h : array-like of shape (N,) or (P, N)
-            Fast input(s) of the training length.
-        y_l : array-like of shape (M,) or (P, M)
+        u_h : array-like or list
+            Fast input(s) of the training length (record convention of
+            ``fit``).
+        y_l : array-like or list
             Measured slow output(s).
 
         Returns
@@ -126,19 +156,30 @@ class FRFEstimatorMixin:
             1 for a perfect prediction; can be negative.
         """
         self._check_fitted()
-        u, y, _ = check_records(
+        records = check_records(
             u_h, y_l, self.downsampling_factor_, purpose="scoring"
         )
-        prediction = self.predict(u)
-        # R^2 is a ratio: normalise both by the same power of two (exact)
-        exponent = power_of_two_exponent(y)
-        y = scale_by_power_of_two(y, -exponent)
-        prediction = scale_by_power_of_two(prediction, -exponent)
-        ss_res = np.sum((y - prediction) ** 2)
-        ss_tot = np.sum((y - y.mean()) ** 2)
-        if ss_tot == 0.0:
-            return 0.0 if ss_res > 0 else 1.0
-        return float(1.0 - ss_res / ss_tot)
+        prediction = self._predict_records(records.u, records.u_form)
+        y = records.y
+        if prediction.shape[1] != y.shape[1]:
+            raise ValueError(
+                f"The estimator predicts {prediction.shape[1]} output channel(s); "
+                f"y_l has {y.shape[1]}." + records.hint()
+            )
+        scores = []
+        for o in range(y.shape[1]):
+            y_o, p_o = y[:, o], prediction[:, o]
+            # R^2 is a ratio: normalise both by the same power of two (exact)
+            exponent = power_of_two_exponent(y_o)
+            y_o = scale_by_power_of_two(y_o, -exponent)
+            p_o = scale_by_power_of_two(p_o, -exponent)
+            ss_res = np.sum((y_o - p_o) ** 2)
+            ss_tot = np.sum((y_o - y_o.mean()) ** 2)
+            if ss_tot == 0.0:
+                scores.append(0.0 if ss_res > 0 else 1.0)
+            else:
+                scores.append(float(1.0 - ss_res / ss_tot))
+        return float(np.mean(scores))
 
     def to_frd(self, *, return_std: bool = False):
         """The valid bins of the FRF as a ``control.FrequencyResponseData``.
@@ -153,9 +194,10 @@ class FRFEstimatorMixin:
         Returns
         -------
         frd : control.FrequencyResponseData
-            ``omega`` in rad/s, ``dt`` the fast sample time in seconds. Bins
-            with ``valid_ == False`` are left out.
-        std : ndarray of shape (n_valid,)
+            ``omega`` in rad/s, ``dt`` the fast sample time in seconds, with
+            ``n_y`` outputs and ``n_u`` inputs. Bins where any entry has
+            ``valid_ == False`` are left out.
+        std : ndarray of shape (n_valid,) or (n_y, n_u, n_valid)
             Only with ``return_std=True``: ``frf_std_`` at the same bins, in
             the order of ``frd.omega`` (``sqrt(E|G_hat - G|^2)``, units of
             the FRF; NaN where the estimator has no std, e.g. spectral
@@ -179,14 +221,15 @@ class FRFEstimatorMixin:
 
         return_std = check_bool(return_std, "return_std")
         self._check_fitted()
-        keep = self.valid_
+        valid = np.asarray(self.valid_)
+        keep = valid if valid.ndim == 1 else valid.all(axis=(0, 1))
         frd = control.FrequencyResponseData(
-            self.frf_[keep],
+            self.frf_[..., keep],
             2 * np.pi * self.frequencies_[keep],
             dt=self.sample_time_,
         )
         if return_std:
-            return frd, self.frf_std_[keep].copy()
+            return frd, self.frf_std_[..., keep].copy()
         return frd
 
 

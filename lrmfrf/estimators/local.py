@@ -62,10 +62,13 @@ class _LocalModelEstimator(_BaseFRFEstimator):
 
         Parameters
         ----------
-        u_h : array-like of shape (N,) or (P, N), or list of P records
-            Fast-rate input(s), real.
-        y_l : array-like of shape (M,) or (P, M), or list of P records
-            Slow-rate output(s), real, ``y_l(m) = y_h(m F) + noise``.
+        u_h : array-like of shape (N,), (n_u, N) or (P, n_u, N), or list
+            Fast-rate input(s), real: one record (1-D, or 2-D with channels
+            first) or ``P`` experiments (3-D, or a list of 1-D/2-D records).
+            A 2-D array is ONE record: several SISO experiments go in a list
+            or a (P, 1, N) array.
+        y_l : array-like of shape (M,), (n_y, M) or (P, n_y, M), or list
+            Slow-rate output(s) likewise, real, ``y_l(m) = y_h(m F) + noise``.
         F : int
             Downsampling factor, ``N = F M``.
         sample_time : float, default=1.0
@@ -83,9 +86,13 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         ------
         TypeError, ValueError
             For a parameter out of range, signals that are not real, finite,
-            non-empty and 1-D (or a stack of equal-length records), ``N != F M``,
-            a window wider than the slow record, or fewer equations than
-            parameters (the message says which setting to change).
+            non-empty records of equal length in the record convention,
+            ``N != F M``, a window wider than the slow record, or fewer
+            equations than parameters (the message names the smallest half
+            window, or the number of experiments, that would do).
+        NotImplementedError
+            For iterative refinement (``sk_iterations``, ``lm_iterations``)
+            with more than one input or output.
 
         Warns
         -----
@@ -108,41 +115,60 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         variance of an output of 1e160) is inf.
         """
         params = self._checked_params()
-        u, y, F = check_records(u_h, y_l, F)
+        records = check_records(u_h, y_l, F)
+        F = records.F
         sample_time = check_sample_time(sample_time)
-        P, N = u.shape
-        M = y.shape[1]
+        P, n_u, N = records.u.shape
+        n_y, M = records.n_outputs, records.n_slow
         local_degrees, names = self._local_degrees(params)
         degrees = check_local_degrees(
             **local_degrees, F=F, n_slow=M, n_experiments=P,
-            parameter_names=names,
+            parameter_names=names, n_inputs=n_u, hint=records.hint(),
         )
-        layout = LocalModelLayout(F=F, n_experiments=P, **degrees)
+        layout = LocalModelLayout(F=F, n_experiments=P, n_inputs=n_u, **degrees)
+        siso = records.is_siso
+        if not siso and (params.get("sk_iterations") or params.get("lm_iterations")):
+            raise NotImplementedError(
+                "Iterative refinement (sk_iterations, lm_iterations) supports one "
+                f"input and one output only; got {n_u} input(s) and {n_y} "
+                "output(s). Use the closed form (sk_iterations=0, "
+                "lm_iterations=0) for MIMO data."
+            )
         # The FRF is a ratio: fit on records normalised by powers of two
         # (exact; none for ordinary data) and undo it on the results.
+        u, y = records.u, records.y  # new arrays: check_records copies
         u_exponent = _normalise_in_place(u)
         y_exponent = _normalise_in_place(y)
-        U = dft(u)
+        U = dft(u).reshape(P, n_u * N)  # inputs concatenated: the F n_u bands
         Y = dft(y)
-        del u, y
-        local_fit = fit_local_models(U, Y, layout)
-        local_fit = self._refine(U, Y, layout, local_fit, params, y_exponent)
+        del u, y, records
+        fits = []
+        for o in range(n_y):  # one local problem (one denominator) per output row
+            Y_o = Y[:, o, :]
+            local_fit = fit_local_models(U, Y_o, layout, return_cov=True)
+            fits.append(self._refine(U, Y_o, layout, local_fit, params, y_exponent))
         self._set_fitted(
-            local_fit, layout, N, M, F, P, sample_time, u_exponent, y_exponent
+            fits, layout, N, M, F, P, sample_time, u_exponent, y_exponent
         )
         return self
 
     def _set_fitted(
-        self, local_fit, layout, N, M, F, P, sample_time, u_exponent, y_exponent
+        self, fits, layout, N, M, F, P, sample_time, u_exponent, y_exponent
     ) -> None:
-        valid = one_sided_fast_grid(
-            np.repeat(local_fit.well_posed[:, None], F, axis=1), N, F, conj=False
-        )
-        n_bad = int(np.count_nonzero(~local_fit.well_posed))
+        n_u, n_y = layout.n_inputs, len(fits)
+        siso = n_u == 1 and n_y == 1
+        well_posed = np.stack([fit.well_posed for fit in fits])  # (n_y, B)
+        valid = np.stack([
+            one_sided_fast_grid(
+                np.repeat(wp[:, None], F, axis=1), N, F, conj=False
+            ) for wp in well_posed
+        ])  # (n_y, K)
+        n_bad = int(np.count_nonzero(~well_posed))
         if n_bad:
-            n_unexcited = int(np.count_nonzero(~local_fit.excited))
+            n_unexcited = int(sum(np.count_nonzero(~fit.excited) for fit in fits))
+            rows = " (over all output rows)" if n_y > 1 else ""
             msg = (
-                f"{n_bad} of {local_fit.well_posed.size} slow bins "
+                f"{n_bad} of {well_posed.size} slow bins{rows} "
                 f"({np.count_nonzero(~valid)} of {valid.size} fast bins of frf_) "
                 "are not identifiable: their local problem is rank-deficient "
                 f"({n_unexcited} of them because the input has no energy in some "
@@ -161,6 +187,8 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         self.n_samples_ = N
         self.n_slow_ = M
         self.n_experiments_ = P
+        self.n_inputs_ = n_u
+        self.n_outputs_ = n_y
         self.downsampling_factor_ = F
         self.sample_time_ = sample_time
         self.n_params_ = layout.n_params
@@ -168,27 +196,53 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         self.layout_ = layout
         self.frequencies_ = np.arange(N // 2 + 1) / (N * sample_time)
         system_exponent = y_exponent - u_exponent
-        frf = one_sided_fast_grid(local_fit.system, N, F, conj=True)
-        self.frf_ = scale_by_power_of_two(frf, system_exponent)
-        # std from the normalised variance: its square may leave the float range
-        std = np.sqrt(one_sided_fast_grid(local_fit.system_var, N, F, conj=False))
-        self.frf_std_ = scale_by_power_of_two(std, system_exponent)
-        local_fit = rescale_local_fit(local_fit, u_exponent, y_exponent)
-        self.valid_ = valid
-        self.slow_frequencies_ = local_fit.slow_bins / (N * sample_time)
-        self.noise_variance_ = local_fit.noise_var
-        transient = local_fit.transient.T
-        self.transient_ = transient[0] if P == 1 else transient
-        self.local_fit_ = local_fit
+        K = N // 2 + 1
+        frf = np.empty((n_y, n_u, K), dtype=complex)
+        std = np.empty((n_y, n_u, K))
+        cov = np.empty((n_y, n_u, n_u, K), dtype=complex)
+        for o, fit in enumerate(fits):
+            for i in range(n_u):
+                bands = slice(i * F, (i + 1) * F)
+                frf[o, i] = one_sided_fast_grid(fit.system[:, bands], N, F, conj=True)
+                # std from the normalised variance: its square may leave the
+                # float range
+                std[o, i] = np.sqrt(
+                    one_sided_fast_grid(fit.system_var[:, bands], N, F, conj=False)
+                )
+                for j in range(n_u):
+                    block = fit.system_cov[:, bands, j * F : (j + 1) * F]
+                    cov[o, i, j] = one_sided_fast_grid(
+                        np.diagonal(block, axis1=1, axis2=2), N, F, conj=True
+                    )
+        frf = scale_by_power_of_two(frf, system_exponent)
+        std = scale_by_power_of_two(std, system_exponent)
+        self.frf_cov_ = scale_by_power_of_two(cov, 2 * system_exponent)
+        fits = [rescale_local_fit(fit, u_exponent, y_exponent) for fit in fits]
+        valid = np.broadcast_to(valid[:, None, :], (n_y, n_u, K))
+        self.frf_ = frf[0, 0] if siso else frf
+        self.frf_std_ = std[0, 0] if siso else std
+        self.valid_ = valid[0, 0].copy() if siso else valid.copy()
+        self.slow_frequencies_ = fits[0].slow_bins / (N * sample_time)
+        noise = np.stack([fit.noise_var for fit in fits])
+        transient = np.stack([fit.transient.T for fit in fits], axis=1)  # (P, n_y, B)
+        if siso:
+            self.noise_variance_ = noise[0]
+            self.transient_ = transient[0, 0] if P == 1 else transient[:, 0]
+            self.local_fit_ = fits[0]
+        else:
+            self.noise_variance_ = noise
+            self.transient_ = transient
+            self.local_fit_ = fits
         logger.debug(
-            "%s fitted: N=%d, F=%d, P=%d, %d params, %d dof, %d invalid bins",
-            type(self).__name__, N, F, P, layout.n_params, layout.dof, n_bad,
+            "%s fitted: N=%d, F=%d, P=%d, n_u=%d, n_y=%d, %d params, %d dof, %d "
+            "invalid bins", type(self).__name__, N, F, P, n_u, n_y,
+            layout.n_params, layout.dof, n_bad,
         )
 
     def _fast_frf(self, n_samples: int) -> np.ndarray:
         half = self.frf_
-        mirror = np.conj(half[1 : n_samples - n_samples // 2][::-1])
-        return np.concatenate([half, mirror])
+        mirror = np.conj(half[..., 1 : n_samples - n_samples // 2][..., ::-1])
+        return np.concatenate([half, mirror], axis=-1)
 
 
 class LRMBeyondNyquist(_LocalModelEstimator):
@@ -239,37 +293,53 @@ class LRMBeyondNyquist(_LocalModelEstimator):
         sample (``k / N``) when ``fit`` got no ``sample_time`` (default 1.0).
     frf_ : ndarray of shape (N//2+1,), complex
         Estimated FRF ``G(k)`` from ``u_h`` to ``y_h`` (units of ``y_l`` per
-        unit of ``u_h``); NaN where ``valid_`` is False.
-    frf_std_ : ndarray of shape (N//2+1,)
+        unit of ``u_h``); NaN where ``valid_`` is False. With ``n_u`` inputs
+        or ``n_y`` outputs (not both 1): shape (n_y, n_u, N//2+1), entry
+        ``[o, i]`` from input ``i`` to output ``o``. Each output row is one
+        local problem per window: the local models of all inputs over all
+        ``F`` bands with one denominator and one transient per experiment.
+    frf_std_ : ndarray of shape (N//2+1,) or (n_y, n_u, N//2+1)
         Standard deviation of ``frf_`` (Lemma 2, ``sqrt(E|G_hat - G|^2)``).
-    valid_ : ndarray of shape (N//2+1,), bool
-        False where the local problem was not well posed (``frf_`` is NaN).
+    frf_cov_ : ndarray of shape (n_y, n_u, n_u, N//2+1), complex
+        Always 4-D: ``E[dG_oi conj(dG_oj)]`` between the entries of one output
+        row at each fast bin (Lemma 2 per output row); ``frf_std_ ==
+        sqrt(real(diagonal))``. Cross-band and cross-output covariances are
+        not kept.
+    valid_ : ndarray of shape (N//2+1,) or (n_y, n_u, N//2+1), bool
+        False where the local problem was not well posed (``frf_`` is NaN);
+        the same for all inputs of an output row.
     slow_frequencies_ : ndarray of shape (M//2+1,)
         Slow window centres in Hz.
-    noise_variance_ : ndarray of shape (M//2+1,)
-        The paper's residual estimate of the variance of the slow output noise
-        DFT ``V_l(k)``: ``||Y - Theta K||^2 / dof_`` of the weighted problem.
-        With ``den_degree > 0`` the output sits in the regressor
-        (errors-in-variables) and the fit absorbs part of the noise, so this is
-        biased low (on pure noise about 0.3x for R_e = 7; with a system to fit,
-        ``frf_std_`` is still 0.85-0.9x the Monte-Carlo std on the wafer stage).
+    noise_variance_ : ndarray of shape (M//2+1,) or (n_y, M//2+1)
+        Per output row (MIMO). The paper's residual estimate of the variance
+        of the slow output noise DFT ``V_l(k)``: ``||Y - Theta K||^2 /
+        dof_`` of the weighted problem. With ``den_degree > 0`` the output
+        sits in the regressor (errors-in-variables) and the fit absorbs part
+        of the noise, so this is biased low (on pure noise about 0.3x for
+        R_e = 7; with a system to fit, ``frf_std_`` is still 0.85-0.9x the
+        Monte-Carlo std on the wafer stage).
     transient_ : ndarray of shape (M//2+1,) or (P, M//2+1), complex
-        Transient term in the slow output DFT at each window centre.
+        Transient term in the slow output DFT at each window centre; (P, n_y,
+        M//2+1) when not SISO.
     n_params_ : int
-        Complex parameters per local problem,
-        ``(R_g+1) F + P (R_t+1) + R_e``.
+        Complex parameters per local problem (per output row),
+        ``(R_g+1) F n_u + P (R_t+1) + R_e``.
     dof_ : int
         Residual degrees of freedom per local problem, ``P (2n+1) - n_params_``.
     n_samples_, n_slow_, n_experiments_ : int
         ``N``, ``M`` and ``P`` of the training records.
+    n_inputs_, n_outputs_ : int
+        ``n_u`` and ``n_y``.
     downsampling_factor_ : int
         ``F``.
     sample_time_ : float
         Fast sample time in seconds.
     layout_ : lrmfrf.windows.LocalModelLayout
         Sizes and column order of the local problems.
-    local_fit_ : lrmfrf.local_models.LocalModelFit
-        Per-slow-bin results (parameters, band values, variances).
+    local_fit_ : lrmfrf.local_models.LocalModelFit or list of them
+        Per-slow-bin results (parameters, band values, variances); a list of
+        ``n_y`` fits, one per output row, when not SISO (band ``b = i F + f``
+        is input ``i``, see :func:`lrmfrf.windows.band_indices`).
     cost_history_ : ndarray of shape (1 + n_sk_iter_ + n_lm_iter_,) or None
         Mean over the slow bins of the original least-squares cost
         (eq. meanCosts, ``mu_OE``) after the closed form and after each SK,
@@ -283,6 +353,8 @@ class LRMBeyondNyquist(_LocalModelEstimator):
 
     Notes
     -----
+    Iterative refinement (SK, LM) supports SISO data only; for MIMO data
+    ``fit`` raises ``NotImplementedError`` unless both are 0.
     After refinement, ``frf_std_`` is linearised at the final estimate (SK:
     Lemma 2 on the reweighted regressor; LM: ``(J^H J)^-1``) with the noise
     variance ``J_LS / dof_``. Iterative refinement is implemented in

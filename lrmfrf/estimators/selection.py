@@ -366,10 +366,12 @@ class _LocalModelCV(_BaseFRFEstimator):
 
         Parameters
         ----------
-        u_h : array-like of shape (N,) or (P, N), or list of P records
-            Fast-rate input(s), real.
-        y_l : array-like of shape (M,) or (P, M), or list of P records
-            Slow-rate output(s), real.
+        u_h : array-like of shape (N,), (1, N) or (P, 1, N), or list of P records
+            Fast-rate input(s), real, one input channel (a 2-D array is one
+            record with channels first; several experiments go in a list or a
+            3-D array). MIMO data are not supported by the selection yet.
+        y_l : array-like of shape (M,), (1, M) or (P, 1, M), or list of P records
+            Slow-rate output(s), real, one output channel.
         F : int
             Downsampling factor, ``N = F M``.
         sample_time : float, default=1.0
@@ -390,7 +392,9 @@ class _LocalModelCV(_BaseFRFEstimator):
         """
         params = self._checked_params()
         criterion = params["criterion"]
-        u, y, F = check_records(u_h, y_l, F)
+        records = check_records(u_h, y_l, F)
+        u, y = records.siso_stacks(type(self).__name__)
+        F = records.F
         sample_time = check_sample_time(sample_time)
         candidates = self._candidates(params)
         P, M = y.shape
@@ -449,7 +453,7 @@ class _LocalModelCV(_BaseFRFEstimator):
         self.best_params_ = dict(candidates[best])
         self.best_criterion_ = float(value[best])
         estimator = clone(self._base_class(**candidates[best]))
-        estimator.fit(u, y, F, sample_time=sample_time)
+        estimator.fit(list(u), list(y), F, sample_time=sample_time)
         self.best_estimator_ = estimator
         for name, attr in vars(estimator).items():
             if name.endswith("_") and not name.startswith("_"):

@@ -29,16 +29,16 @@ def zero_stuff(y_l: np.ndarray, F: int) -> np.ndarray:
 
     Parameters
     ----------
-    y_l : ndarray of shape (P, M)
+    y_l : ndarray of shape (..., M)
     F : int
 
     Returns
     -------
-    ndarray of shape (P, F*M)
+    ndarray of shape (..., F*M)
     """
-    P, M = y_l.shape
-    out = np.zeros((P, F * M))
-    out[:, ::F] = F * y_l
+    M = y_l.shape[-1]
+    out = np.zeros(y_l.shape[:-1] + (F * M,))
+    out[..., ::F] = F * y_l
     return out
 
 
@@ -78,10 +78,11 @@ class SpectralAnalysis(_BaseFRFEstimator):
         Segment grid ``p / (L T_s)`` in Hz (coarser than the fast DFT grid by
         ``N/L``); in cycles per sample (``p / L``) when ``fit`` got no
         ``sample_time`` (default 1.0).
-    frf_ : ndarray of shape (L//2+1,), complex
-        H1 estimate (units of ``y_l`` per unit of ``u_h``); NaN where the input
-        has no energy.
-    frf_std_ : ndarray of shape (L//2+1,)
+    frf_ : ndarray of shape (L//2+1,) or (n_y, n_u, L//2+1), complex
+        H1 estimate ``S_yu S_uu^-1`` from the cross-spectral matrices summed
+        over segments and experiments (units of ``y_l`` per unit of ``u_h``);
+        NaN where the input has no energy. (L//2+1,) when ``n_u = n_y = 1``.
+    frf_std_ : ndarray of shape (L//2+1,) or (n_y, n_u, L//2+1)
         Standard deviation of the complex estimate, ``sqrt(E|G_hat - G|^2)``,
         from the coherence: ``|G| sqrt((1 - coh) / (n_avg coh))`` (Bendat and
         Piersol's random error, whose magnitude and phase parts each carry
@@ -92,14 +93,23 @@ class SpectralAnalysis(_BaseFRFEstimator):
         Nyquist frequency. With a single segment (``n_segments_ == 1``) the
         coherence is 1 by construction and says nothing about the noise:
         ``frf_std_`` is then NaN everywhere (with a warning), while ``frf_``
-        and ``valid_`` are as usual.
-    coherence_ : ndarray of shape (L//2+1,)
-        Magnitude-squared coherence of ``u_h`` and the zero-stuffed output.
-    valid_ : ndarray of shape (L//2+1,), bool
-        False where the input has no energy: its averaged power is below
-        ``1e-12`` of the average over all bins (round-off or window leakage of
-        a zero; e.g. all bins but the first two for a constant input).
-        ``frf_`` is NaN there.
+        and ``valid_`` are as usual. MIMO: the multivariate form of the same
+        formula (Bendat and Piersol, multiple-input H1; Pintelon and
+        Schoukens), ``var H_oi = [S_uu^-1]_ii (S_yy,o - S_yu,o S_uu^-1
+        S_uy,o) / n_avg`` per output row ``o`` (``n_avg`` as in SISO, not
+        ``n_avg - n_u``).
+    coherence_ : ndarray of shape (L//2+1,) or (n_y, L//2+1)
+        Magnitude-squared coherence of ``u_h`` and the zero-stuffed output;
+        MIMO: the multiple coherence of each output with all inputs.
+    valid_ : ndarray of shape (L//2+1,) or (n_y, n_u, L//2+1), bool
+        False where the input has no energy: the smallest eigenvalue of the
+        summed ``S_uu`` (SISO: ``S_uu``) is below ``1e-12`` of the average
+        input power over all bins (round-off or window leakage of a zero;
+        e.g. all bins but the first two for a constant input; MIMO: also
+        inputs that are collinear at that bin, e.g. fewer segments than
+        inputs). ``frf_`` is NaN there.
+    n_inputs_, n_outputs_ : int
+        ``n_u`` and ``n_y``.
     n_segments_ : int
         Segments averaged (over all experiments).
     n_samples_, n_slow_, n_experiments_, downsampling_factor_ : int
@@ -156,10 +166,11 @@ class SpectralAnalysis(_BaseFRFEstimator):
 
         Parameters
         ----------
-        u_h : array-like of shape (N,) or (P, N), or list of P records
-            Fast-rate input(s), real.
-        y_l : array-like of shape (M,) or (P, M), or list of P records
-            Slow-rate output(s), real, ``y_l(m) = y_h(m F) + noise``.
+        u_h : array-like of shape (N,), (n_u, N) or (P, n_u, N), or list
+            Fast-rate input(s), real: one record (1-D, or 2-D channels first)
+            or ``P`` experiments (3-D, or a list of records).
+        y_l : array-like of shape (M,), (n_y, M) or (P, n_y, M), or list
+            Slow-rate output(s) likewise, ``y_l(m) = y_h(m F) + noise``.
         F : int
             Downsampling factor, ``N = F M``.
         sample_time : float, default=1.0
@@ -178,9 +189,12 @@ class SpectralAnalysis(_BaseFRFEstimator):
             length): ``frf_std_`` is NaN.
         """
         L, overlap = self._check_params()
-        u, y, F = check_records(u_h, y_l, F)
+        records = check_records(u_h, y_l, F)
+        F = records.F
         sample_time = check_sample_time(sample_time)
-        P, N = u.shape
+        u, y = records.u, records.y  # (P, n_u, N), (P, n_y, M): new arrays
+        P, n_u, N = u.shape
+        n_y = y.shape[1]
         if L > N:
             raise ValueError(
                 f"`segment_length` exceeds the record length. Got segment_length="
@@ -188,6 +202,14 @@ class SpectralAnalysis(_BaseFRFEstimator):
             )
         step = L - overlap
         starts = np.arange(0, N - L + 1, step)
+        n_avg = P * starts.size
+        if n_avg < n_u:
+            raise ValueError(
+                f"H1 with {n_u} inputs needs at least {n_u} segments in all to "
+                f"invert the input cross-spectral matrix; got {n_avg} (P={P} "
+                f"experiment(s) of {starts.size} segment(s)). Use shorter "
+                "segments (segment_length) or more experiments." + records.hint()
+            )
         taper = get_window(self.window, L)
         # The FRF is a ratio: normalise by powers of two (exact; none for
         # ordinary data) and undo it on frf_ and frf_std_.
@@ -195,19 +217,31 @@ class SpectralAnalysis(_BaseFRFEstimator):
         y_exponent = _normalise_in_place(y)
         y_fast = zero_stuff(y, F)
         idx = starts[:, None] + np.arange(L)
-        Useg = np.fft.rfft(u[:, idx] * taper, axis=-1)  # (P, S, L//2+1)
-        Yseg = np.fft.rfft(y_fast[:, idx] * taper, axis=-1)
-        Suu = np.sum(np.abs(Useg) ** 2, axis=(0, 1))
-        Syy = np.sum(np.abs(Yseg) ** 2, axis=(0, 1))
-        Syu = np.sum(Yseg * np.conj(Useg), axis=(0, 1))
-        valid = Suu > EXCITATION_TOL * Suu.mean()
-        n_avg = P * starts.size
+        Useg = np.fft.rfft(u[:, :, idx] * taper, axis=-1)  # (P, n_u, S, L//2+1)
+        Yseg = np.fft.rfft(y_fast[:, :, idx] * taper, axis=-1)
+        # cross-spectral sums over segments and experiments, bin first
+        Suu = np.einsum("pisk,pjsk->kij", Useg, np.conj(Useg))
+        Syu = np.einsum("pisk,pjsk->kij", Yseg, np.conj(Useg))
+        Syy = np.sum(np.abs(Yseg) ** 2, axis=(0, 2)).T  # (K, n_y)
+        # a bin is valid where the smallest eigenvalue of S_uu is not
+        # negligible against the average input power (n_u = 1: S_uu itself)
+        power = np.real(np.trace(Suu, axis1=1, axis2=2)) / n_u
+        smallest = np.linalg.eigvalsh(Suu)[:, 0] if n_u > 1 else power
+        valid = smallest > EXCITATION_TOL * power.mean()
+        safe = np.where(valid[:, None, None], Suu, np.eye(n_u))
+        Suu_inv = np.linalg.inv(safe)
         with np.errstate(invalid="ignore", divide="ignore"):
-            frf = np.where(valid, Syu / Suu, np.nan)
-            coherence = np.where(valid & (Syy > 0), np.abs(Syu) ** 2 / (Suu * Syy), 0)
-            # |G|^2 (1 - coh) / (n coh) without dividing by coh (or S_yy)
-            residual_power = np.maximum(Syy - np.abs(Syu) ** 2 / Suu, 0.0)
-            std = np.sqrt(residual_power / (n_avg * Suu))
+            frf = Syu @ Suu_inv  # (K, n_y, n_u): H1 = S_yu S_uu^-1
+            # noise power per output: S_yy - S_yu S_uu^-1 S_uy, >= 0
+            explained = np.real(np.einsum("koi,koi->ko", frf, np.conj(Syu)))
+            residual_power = np.maximum(Syy - explained, 0.0)
+            coherence = np.where(
+                valid[:, None] & (Syy > 0), explained / np.where(Syy > 0, Syy, 1), 0
+            )
+            inv_diag = np.real(np.diagonal(Suu_inv, axis1=1, axis2=2))  # (K, n_u)
+            # var H1_oi = sigma_o^2 [S_uu^-1]_ii, sigma_o^2 = residual_o / n_avg
+            std = np.sqrt(residual_power[:, :, None] * inv_diag[:, None, :] / n_avg)
+        frf = np.where(valid[:, None, None], frf, np.nan)
         if n_avg == 1:
             warnings.warn(
                 f"SpectralAnalysis averaged a single segment (segment_length={L}, "
@@ -218,26 +252,36 @@ class SpectralAnalysis(_BaseFRFEstimator):
                 stacklevel=2,
             )
             std = np.full_like(std, np.nan)
+        std = np.where(valid[:, None, None], std, np.nan)
         system_exponent = y_exponent - u_exponent
+        siso = n_u == 1 and n_y == 1
+        # to (n_y, n_u, K), or (K,) for SISO
+        frf = np.moveaxis(frf, 0, -1)
+        std = np.moveaxis(std, 0, -1)
+        coherence = coherence.T
+        valid_all = np.broadcast_to(valid, (n_y, n_u, valid.size)).copy()
         self.n_samples_ = N
         self.n_slow_ = N // F
         self.n_experiments_ = P
+        self.n_inputs_ = n_u
+        self.n_outputs_ = n_y
         self.downsampling_factor_ = F
         self.sample_time_ = sample_time
         self.n_segments_ = n_avg
         self.frequencies_ = np.arange(L // 2 + 1) / (L * sample_time)
-        self.frf_ = scale_by_power_of_two(frf, system_exponent)
+        self.frf_ = scale_by_power_of_two(frf[0, 0] if siso else frf, system_exponent)
         self.frf_std_ = scale_by_power_of_two(
-            np.where(valid, std, np.nan), system_exponent
+            std[0, 0] if siso else std, system_exponent
         )
-        self.coherence_ = coherence
-        self.valid_ = valid
+        self.coherence_ = coherence[0] if siso else coherence
+        self.valid_ = valid if siso else valid_all
         return self
 
     def _fast_frf(self, n_samples: int) -> np.ndarray:
         """Linear interpolation of the segment-grid FRF onto the fast grid."""
         f_fast = np.arange(n_samples // 2 + 1) / (n_samples * self.sample_time_)
-        keep = self.valid_
+        keep = np.asarray(self.valid_)
+        keep = keep if keep.ndim == 1 else keep.all(axis=(0, 1))
         if not keep.any():
             raise ValueError(
                 "The spectral-analysis FRF has no valid bin (`valid_` is False "
@@ -245,8 +289,12 @@ class SpectralAnalysis(_BaseFRFEstimator):
                 "nothing to predict with. Refit with an input that excites the "
                 "band of interest, e.g. lrmfrf.signals.multisine."
             )
-        half = np.interp(f_fast, self.frequencies_[keep], self.frf_[keep].real) + 1j * (
-            np.interp(f_fast, self.frequencies_[keep], self.frf_[keep].imag)
-        )
-        mirror = np.conj(half[1 : n_samples - n_samples // 2][::-1])
-        return np.concatenate([half, mirror])
+        frf = np.asarray(self.frf_)
+        entries = frf.reshape(-1, frf.shape[-1])
+        half = np.stack([
+            np.interp(f_fast, self.frequencies_[keep], entry[keep].real)
+            + 1j * np.interp(f_fast, self.frequencies_[keep], entry[keep].imag)
+            for entry in entries
+        ]).reshape(frf.shape[:-1] + (f_fast.size,))
+        mirror = np.conj(half[..., 1 : n_samples - n_samples // 2][..., ::-1])
+        return np.concatenate([half, mirror], axis=-1)
