@@ -813,3 +813,26 @@ def _equals(value, default) -> bool:
         return bool(value == default)
     except (TypeError, ValueError):  # arrays and the like: not the default
         return False
+
+
+def check_feedback_outputs(feedback_outputs, n_outputs: int) -> tuple[int, ...]:
+    """Indices of the outputs a controller feeds back: ``None`` means all of them,
+    one int means that output; distinct indices in ``0..n_outputs-1``."""
+    if feedback_outputs is None:
+        return tuple(range(n_outputs))
+    if isinstance(feedback_outputs, numbers.Integral):
+        feedback_outputs = (feedback_outputs,)
+    indices = tuple(feedback_outputs)
+    if (
+        not indices
+        or not all(isinstance(i, numbers.Integral) for i in indices)
+        or len(set(indices)) != len(indices)
+        or not all(0 <= i < n_outputs for i in indices)
+    ):
+        raise ValueError(
+            f"feedback_outputs must be distinct output indices in [0, "
+            f"{n_outputs - 1}]; got {feedback_outputs!r}."
+        )
+    return tuple(int(i) for i in indices)
+
+__all__ += ["check_feedback_outputs"]

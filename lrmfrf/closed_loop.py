@@ -55,11 +55,11 @@ Nyquist slow bins).
 from __future__ import annotations
 
 import math
-import numbers
 
 import control
 import numpy as np
 
+from ._validation import check_feedback_outputs
 from .simulate import _matrix_response, _system_matrices
 
 __all__ = ["ClosedLoopPlant", "plant_from_closed_loop"]
@@ -212,7 +212,7 @@ def plant_from_closed_loop(
             f"hold must be 'zoh' (zero-order hold, the only one supported); got "
             f"{hold!r}."
         )
-    feedback = _check_feedback_outputs(feedback_outputs, n_outputs)
+    feedback = check_feedback_outputs(feedback_outputs, n_outputs)
     A, B, C, D, dt = _controller_matrices(controller, n_inputs, feedback)
     sample_time, F = estimate["sample_time"], estimate["F"]
     if math.isclose(dt, sample_time, rel_tol=1e-9):
@@ -304,25 +304,6 @@ def _read_estimate(estimator) -> dict:
         "sample_time": float(estimator.sample_time_),
         "F": int(estimator.downsampling_factor_),
     }
-
-
-def _check_feedback_outputs(feedback_outputs, n_outputs: int) -> tuple[int, ...]:
-    if feedback_outputs is None:
-        return tuple(range(n_outputs))
-    if isinstance(feedback_outputs, numbers.Integral):
-        feedback_outputs = (feedback_outputs,)
-    indices = tuple(feedback_outputs)
-    if (
-        not indices
-        or not all(isinstance(i, numbers.Integral) for i in indices)
-        or len(set(indices)) != len(indices)
-        or not all(0 <= i < n_outputs for i in indices)
-    ):
-        raise ValueError(
-            f"feedback_outputs must be distinct output indices in [0, "
-            f"{n_outputs - 1}]; got {feedback_outputs!r}."
-        )
-    return tuple(int(i) for i in indices)
 
 
 def _controller_matrices(controller, n_inputs: int, feedback: tuple[int, ...]):

@@ -41,6 +41,7 @@ import scipy.sparse.csgraph
 
 from ._validation import (
     check_downsampling_factor,
+    check_feedback_outputs,
     check_nonnegative_int,
     check_rng,
     check_sample_time,
@@ -324,7 +325,7 @@ def simulate_slow_feedback(
             f"give either snr_db or noise_std, not both; got {snr_db=} and "
             f"{noise_std=}. Set the other to None."
         )
-    feedback = _feedback_selection(feedback_outputs, n_outputs)
+    feedback = check_feedback_outputs(feedback_outputs, n_outputs)
     controller_matrices = _slow_controller_matrices(
         controller, dt, F, n_inputs, len(feedback)
     )
@@ -552,25 +553,6 @@ def _check_input(u_h, F: int, *, n_inputs: int = 1, name: str = "u_h") -> np.nda
             f"{length - length % F} samples."
         )
     return u
-
-
-def _feedback_selection(feedback_outputs, n_outputs: int) -> tuple[int, ...]:
-    if feedback_outputs is None:
-        return tuple(range(n_outputs))
-    if isinstance(feedback_outputs, numbers.Integral):
-        feedback_outputs = (feedback_outputs,)
-    indices = tuple(feedback_outputs)
-    if (
-        not indices
-        or not all(isinstance(i, numbers.Integral) for i in indices)
-        or len(set(indices)) != len(indices)
-        or not all(0 <= i < n_outputs for i in indices)
-    ):
-        raise ValueError(
-            f"feedback_outputs must be distinct output indices in [0, "
-            f"{n_outputs - 1}]; got {feedback_outputs!r}."
-        )
-    return tuple(int(i) for i in indices)
 
 
 def _slow_controller_matrices(controller, plant_dt, F, n_inputs, n_feedback):
