@@ -836,3 +836,24 @@ def check_feedback_outputs(feedback_outputs, n_outputs: int) -> tuple[int, ...]:
     return tuple(int(i) for i in indices)
 
 __all__ += ["check_feedback_outputs"]
+
+
+def check_discrete_controller(controller, *, hint: str):
+    """A python-control ``StateSpace``/``TransferFunction`` with a known,
+    discrete sample time; ``hint`` says how to discretise it."""
+    import control
+
+    if not isinstance(controller, (control.StateSpace, control.TransferFunction)):
+        raise TypeError(
+            "controller must be a control.StateSpace or TransferFunction; got "
+            f"{type(controller).__name__}."
+        )
+    if not control.isdtime(controller, strict=True) or controller.dt is True:
+        raise ValueError(
+            f"controller must be discrete-time with a known sample time; got "
+            f"dt={controller.dt!r}. {hint}"
+        )
+    return controller
+
+
+__all__ += ["check_discrete_controller"]

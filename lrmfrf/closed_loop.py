@@ -59,7 +59,7 @@ import math
 import control
 import numpy as np
 
-from ._validation import check_feedback_outputs
+from ._validation import check_discrete_controller, check_feedback_outputs
 from .simulate import _matrix_response, _system_matrices
 
 __all__ = ["ClosedLoopPlant", "plant_from_closed_loop"]
@@ -307,17 +307,9 @@ def _read_estimate(estimator) -> dict:
 
 
 def _controller_matrices(controller, n_inputs: int, feedback: tuple[int, ...]):
-    if not isinstance(controller, (control.StateSpace, control.TransferFunction)):
-        raise TypeError(
-            "controller must be a control.StateSpace or TransferFunction; got "
-            f"{type(controller).__name__}."
-        )
-    if not control.isdtime(controller, strict=True) or controller.dt is True:
-        raise ValueError(
-            f"controller must be discrete-time with a known sample time; got "
-            f"dt={controller.dt!r}. Discretise it, e.g. "
-            "control.sample_system(C, Ts, 'tustin')."
-        )
+    check_discrete_controller(
+        controller, hint="Discretise it, e.g. control.sample_system(C, Ts, 'tustin')."
+    )
     if controller.noutputs != n_inputs or controller.ninputs != len(feedback):
         raise ValueError(
             f"the controller must have n_u = {n_inputs} outputs and "

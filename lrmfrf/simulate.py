@@ -40,6 +40,7 @@ import scipy.sparse
 import scipy.sparse.csgraph
 
 from ._validation import (
+    check_discrete_controller,
     check_downsampling_factor,
     check_feedback_outputs,
     check_nonnegative_int,
@@ -556,16 +557,9 @@ def _check_input(u_h, F: int, *, n_inputs: int = 1, name: str = "u_h") -> np.nda
 
 
 def _slow_controller_matrices(controller, plant_dt, F, n_inputs, n_feedback):
-    if not isinstance(controller, (control.StateSpace, control.TransferFunction)):
-        raise TypeError(
-            "controller must be a control.StateSpace or TransferFunction; got "
-            f"{type(controller).__name__}."
-        )
-    if not control.isdtime(controller, strict=True) or controller.dt is True:
-        raise ValueError(
-            f"controller must be discrete-time with a known sample time; got "
-            f"dt={controller.dt!r}. Discretise it at F times the plant's."
-        )
+    check_discrete_controller(
+        controller, hint="Discretise it at F times the plant's."
+    )
     if plant_dt is None or not math.isclose(
         float(controller.dt), F * plant_dt, rel_tol=1e-9
     ):

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..estimators.selection import CRITERIA
 from ._common import (
     PROG,
     CLIError,
@@ -56,7 +57,6 @@ METHOD_NAMES = {
 }
 #: Estimators that choose the window and degrees with --select.
 SELECT_NAMES = {"lrm": "LRMBeyondNyquistCV", "lpm": "LPMBeyondNyquistCV"}
-CRITERIA = ("aicc", "gcv", "press")
 
 
 def add_parser(sub) -> None:
