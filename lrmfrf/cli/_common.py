@@ -104,8 +104,11 @@ def add_common(parser) -> None:
                         "or summary)")
 
 
-def add_data_options(parser, *, several: bool, sample_time_else: str = "") -> None:
-    """``--F``, ``--sample-time`` and the column options of a data file."""
+def add_data_options(parser, *, several: bool, sample_time_else: str = "",
+                     channels: bool = False) -> None:
+    """``--F``, ``--sample-time`` and the column options of a data file
+    (``several``: of each of several files; ``channels``: the column options
+    take comma-separated lists of channels)."""
     files = "each file" if several else "the file"
     parser.add_argument(
         "--F", dest="F", type=downsampling_factor, default=None,
@@ -121,13 +124,15 @@ def add_data_options(parser, *, several: bool, sample_time_else: str = "") -> No
     from ..io import DEFAULT_MAX_SAMPLES, TIME_COLUMNS
 
     columns = parser.add_argument_group("data columns")
+    several_channels = (", or several comma separated (e.g. u1,u2) for a "
+                        "MIMO record" if channels else "")
     columns.add_argument("--input-column", default="u", metavar="NAME",
                          help="column (CSV) or variable (.npz, .mat) of the fast "
-                         "input (default u)")
+                         f"input (default u){several_channels}")
     columns.add_argument("--output-column", default="y", metavar="NAME",
                          help="column or variable of the slow output: M values, "
                          "or a fast-rate column with values every F rows and "
-                         "empty cells between (default y)")
+                         f"empty cells between (default y){several_channels}")
     columns.add_argument("--time-column", default="auto", metavar="NAME",
                          help="CSV column of the time in seconds (ms, us when "
                          "named *_ms, *_us), checked against --sample-time; "
@@ -149,11 +154,26 @@ def read_data(path, args):
         path,
         F=args.F,
         sample_time=args.sample_time,
-        input_column=args.input_column,
-        output_column=args.output_column,
+        input_column=column_names(args.input_column),
+        output_column=column_names(args.output_column),
         time_column=time_column,
         max_samples=args.max_samples,
     )
+
+
+def column_names(text: str):
+    """``--input-column``/``--output-column``: one name, or a tuple of names
+    when the text is comma separated (``"u1,u2"``; blanks around names are
+    dropped)."""
+    if "," not in text:
+        return text
+    names = tuple(name.strip() for name in text.split(","))
+    if not all(names):
+        raise CLIUsageError(
+            f"the column list {text!r} has an empty name. Separate the names by "
+            "single commas, e.g. u1,u2"
+        )
+    return names
 
 
 def check_out_folder(folder: Path) -> Path:

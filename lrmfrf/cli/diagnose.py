@@ -90,6 +90,13 @@ def run(args, parser) -> int:
     from ..discrepancy import diagnose
     from ..io import atomic_group, check_output_path
 
+    for option, text in (("--input-column", args.input_column),
+                         ("--output-column", args.output_column)):
+        if "," in text:
+            raise CLIUsageError(
+                f"{option} {text!r} names several channels, but diagnose compares "
+                "one input with one output. Pass one column name each"
+            )
     plant, controller = load_model(args.model, args.open_loop)
     data = read_data(args.data, args)
     check_out_folder(args.out)

@@ -75,7 +75,7 @@ def add_parser(sub) -> None:
                      help="output folder (created if needed)")
     fit.add_argument("--method", choices=list(METHOD_OPTIONS), default="lrm",
                      help="lrm (default), lpm or sa (spectral analysis)")
-    add_data_options(fit, several=True)
+    add_data_options(fit, several=True, channels=True)
     group = fit.add_argument_group("method settings (default: the estimator's)")
     group.add_argument("--half-window", type=positive_int, metavar="N",
                        help="lrm, lpm: window half width n (2n+1 slow bins)")
@@ -312,8 +312,17 @@ def _bode_png(estimator, data, args) -> tuple[bytes | None, str | None]:
                       '"lrmfrf[plot]")')
     from ..plotting import plot_frf
 
-    fig = Figure(figsize=(9, 6.5), layout="constrained")
-    axes = fig.subplots(2, 1, sharex=True)
+    mimo = np.ndim(estimator.frf_) == 3
+    if mimo:
+        n_y, n_u = np.shape(estimator.frf_)[:2]
+        fig = Figure(figsize=(max(6.0, 3.2 * n_u), max(4.0, 2.4 * n_y)),
+                     layout="constrained")
+        axes = np.asarray(fig.subplots(n_y, n_u, sharex=True, squeeze=False))
+        drawn = _Labelled(estimator, data.input_names, data.output_names)
+    else:
+        fig = Figure(figsize=(9, 6.5), layout="constrained")
+        axes = fig.subplots(2, 1, sharex=True)
+        drawn = estimator
     extra = {}
     if args.freq_range is not None:
         extra["freq_range"] = tuple(args.freq_range)
@@ -323,7 +332,7 @@ def _bode_png(estimator, data, args) -> tuple[bytes | None, str | None]:
     if args.select:
         label += f" ({args.select.upper()} selection)"
     plot_frf(
-        estimator,
+        drawn,
         ax=axes,
         labels=[label],
         max_points=PLOT_MAX_POINTS,
@@ -334,9 +343,22 @@ def _bode_png(estimator, data, args) -> tuple[bytes | None, str | None]:
     return png_bytes(fig, dpi=120), None
 
 
+class _Labelled:
+    """A fitted MIMO estimate with the data's column names as channel labels
+    (what :func:`lrmfrf.plotting.plot_frf` reads for the panel titles)."""
+
+    def __init__(self, estimator, inputs, outputs):
+        for name in ("frequencies_", "frf_", "frf_std_", "valid_",
+                     "downsampling_factor_", "sample_time_", "n_samples_"):
+            if hasattr(estimator, name):
+                setattr(self, name, getattr(estimator, name))
+        self.input_labels_ = list(inputs)
+        self.output_labels_ = list(outputs)
+
+
 def _summary_numbers(estimator, table: dict, elapsed: float) -> dict:
-    freq = table["frequency_hz"]
     valid = table["valid"]
+    freq = np.broadcast_to(table["frequency_hz"], valid.shape)
     magnitude = np.abs(table["real"] + 1j * table["imag"])
     F = estimator.downsampling_factor_
     slow_nyquist = 1.0 / (2.0 * F * estimator.sample_time_)
@@ -347,12 +369,18 @@ def _summary_numbers(estimator, table: dict, elapsed: float) -> dict:
     candidates = valid & (freq > 0) & np.isfinite(magnitude)
     peak_index = (int(np.argmax(np.where(candidates, magnitude, -np.inf)))
                   if candidates.any() else None)
+    peak_entry = (tuple(int(i) for i in np.unravel_index(peak_index, valid.shape)[:-1])
+                  if peak_index is not None else ())
+    freq, magnitude = freq.ravel(), magnitude.ravel()
     return {
+        "peak_entry": peak_entry,
         "n_bins": int(freq.size),
         "n_valid": int(valid.sum()),
+        "n_frequencies": int(table["frequency_hz"].size),
         "slow_nyquist_hz": slow_nyquist,
         "fast_nyquist_hz": 1.0 / (2.0 * estimator.sample_time_),
-        "resolution_hz": float(freq[1] - freq[0]) if freq.size > 1 else float("nan"),
+        "resolution_hz": float(table["frequency_hz"][1] - table["frequency_hz"][0])
+        if table["frequency_hz"].size > 1 else float("nan"),
         "median_rel_std_below": float(np.median(rel_std[below])) if below.any()
         else float("nan"),
         "median_rel_std_above": float(np.median(rel_std[above])) if above.any()
@@ -373,6 +401,8 @@ def _metadata(args, data, settings: dict) -> dict:
         "n_slow": data.n_slow,
         "input_file": str(data.path),
         "input_sha256": data.sha256,
+        "input_columns": ",".join(data.input_names),
+        "output_columns": ",".join(data.output_names),
     }
     meta.update({f"setting_{k}": v for k, v in settings.items()})
     if args.select:
@@ -385,6 +415,12 @@ def _report_text(args, data, settings, estimator, numbers, messages, plot_note) 
 
     params = estimator.get_params()
     Ts = data.sample_time
+    mimo = np.ndim(estimator.frf_) == 3
+    if mimo and numbers["peak_entry"]:
+        o, i = numbers["peak_entry"]
+        peak_name = f"{data.input_names[i]} -> {data.output_names[o]}"
+    else:
+        peak_name = ""
     lines = [
         "lrmfrf fit report",
         "=================",
@@ -395,7 +431,8 @@ def _report_text(args, data, settings, estimator, numbers, messages, plot_note) 
         "Settings",
         "--------",
         f"input file: {data.path} ({data.file_format})",
-        f"columns: input {data.input_column!r}, output {data.output_column!r}",
+        "columns: input " + ", ".join(map(repr, data.input_names)) + "; output "
+        + ", ".join(map(repr, data.output_names)),
         f"downsampling factor F: {data.downsampling_factor}",
         f"fast sample time: {Ts:g} s (slow sample time "
         f"{Ts * data.downsampling_factor:g} s; {_source(data)})",
@@ -418,12 +455,14 @@ def _report_text(args, data, settings, estimator, numbers, messages, plot_note) 
         "Summary",
         "-------",
         f"N = {data.n_samples} fast samples, M = {data.n_slow} slow samples",
-        f"frequency grid: {numbers['n_bins']} bins from 0 to "
+        f"frequency grid: {numbers['n_frequencies']} bins from 0 to "
         f"{numbers['fast_nyquist_hz']:.6g} Hz, resolution "
         f"{numbers['resolution_hz']:.6g} Hz",
         f"slow Nyquist frequency: {numbers['slow_nyquist_hz']:.6g} Hz",
-        f"valid bins: {numbers['n_valid']} of {numbers['n_bins']}",
-        f"largest |G|: {numbers['peak_db']:.4g} dB at {numbers['peak_hz']:.6g} Hz",
+        f"valid bins: {numbers['n_valid']} of {numbers['n_bins']}"
+        + (" (over all entries)" if mimo else ""),
+        f"largest |G|: {numbers['peak_db']:.4g} dB at {numbers['peak_hz']:.6g} Hz"
+        + (f" (entry {peak_name})" if mimo else ""),
         "median std/|G| below the slow Nyquist frequency: "
         f"{numbers['median_rel_std_below']:.4g}",
         "median std/|G| above the slow Nyquist frequency: "
@@ -444,9 +483,16 @@ def _report_text(args, data, settings, estimator, numbers, messages, plot_note) 
         "-----",
         "frf.csv, frf.npz: columns frequency_hz, real, imag, magnitude_db, "
         "phase_deg, std, valid",
+        *(["  MIMO: frf.csv has leading columns output, input (0-based indices: "
+           "outputs " + ", ".join(f"{k}={n}" for k, n in enumerate(data.output_names))
+           + "; inputs " + ", ".join(f"{k}={n}" for k, n in enumerate(data.input_names))
+           + "), one block of rows per entry; frf.npz arrays have shape (n_y, n_u, "
+           "n_freq)"] if mimo else []),
         "  (std: standard deviation of the complex estimate; valid = 0 rows are NaN)",
-        "bode.png: magnitude and phase with a +/-2 std band; dotted line at the "
-        "slow Nyquist frequency",
+        ("bode.png: an n_y x n_u grid of magnitudes with a +/-2 std band; "
+         "dotted line at the slow Nyquist frequency" if mimo else
+         "bode.png: magnitude and phase with a +/-2 std band; dotted line at the "
+         "slow Nyquist frequency"),
         "",
     ]
     return "\n".join(lines)

@@ -17,6 +17,14 @@ from
   with :func:`scipy.io.whosmat` (numeric class, vector, size) before they are
   loaded, and checked to be real after.
 
+Several inputs or outputs (MIMO): pass a list of names for ``input_column``
+or ``output_column`` (one CSV column or one vector variable each; the
+command line takes them comma separated). The record is then channels first,
+``u_h`` of shape ``(n_u, N)`` and ``y_l`` of shape ``(n_y, M)``, as the
+estimators take one MIMO record; every channel gets the checks of a single
+one, and all outputs must share one layout (slow column or fast column with
+gaps).
+
 Sample time and downsampling factor stored in the file are read and checked
 against the values passed: an ``.npz`` or ``.mat`` file may hold scalars
 ``sample_time`` (seconds) and ``downsampling_factor`` (or ``F``); a CSV file
@@ -151,12 +159,14 @@ class Measurement:
         The file read.
     file_format : str
         ``"csv"``, ``"npz"`` or ``"mat"``.
-    input_column, output_column : str
-        Names of the input and output columns or variables.
-    u_h : ndarray of shape (N,)
-        Fast-rate input.
-    y_l : ndarray of shape (M,)
-        Slow-rate output, ``N = F M``.
+    input_column, output_column : str or tuple of str
+        Names of the input and output columns or variables (a tuple when a
+        list of names was passed).
+    u_h : ndarray of shape (N,) or (n_u, N)
+        Fast-rate input; channels first when ``input_column`` is a tuple.
+    y_l : ndarray of shape (M,) or (n_y, M)
+        Slow-rate output, ``N = F M``; channels first when ``output_column``
+        is a tuple.
     downsampling_factor : int
         ``F``, passed or read from the file.
     output_layout : str
@@ -176,8 +186,8 @@ class Measurement:
 
     path: Path
     file_format: str
-    input_column: str
-    output_column: str
+    input_column: str | tuple[str, ...]
+    output_column: str | tuple[str, ...]
     u_h: np.ndarray
     y_l: np.ndarray
     downsampling_factor: int
@@ -190,20 +200,30 @@ class Measurement:
     @property
     def n_samples(self) -> int:
         """``N``, fast samples."""
-        return int(self.u_h.size)
+        return int(self.u_h.shape[-1])
 
     @property
     def n_slow(self) -> int:
         """``M``, slow samples."""
-        return int(self.y_l.size)
+        return int(self.y_l.shape[-1])
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        """Input column names, one per channel."""
+        return _as_names(self.input_column)
+
+    @property
+    def output_names(self) -> tuple[str, ...]:
+        """Output column names, one per channel."""
+        return _as_names(self.output_column)
 
 
 @dataclass
 class _Raw:
     """What a format reader found, before the shared checks."""
 
-    u: np.ndarray
-    y: np.ndarray
+    u: list  # one ndarray per input channel
+    y: list  # one ndarray per output channel
     where: object
     checks: list
     sample_time: float | None = None
@@ -218,8 +238,8 @@ def read_measurement(
     *,
     F: int | None = None,
     sample_time: float | None = None,
-    input_column: str = "u",
-    output_column: str = "y",
+    input_column: str | Sequence[str] = "u",
+    output_column: str | Sequence[str] = "y",
     time_column: str | None = "auto",
     max_samples: int = DEFAULT_MAX_SAMPLES,
 ) -> Measurement:
@@ -239,11 +259,15 @@ def read_measurement(
         ``sample_time`` of an ``.npz``/``.mat`` file, the step of a CSV time
         column) to within :data:`SAMPLE_TIME_RTOL`. When omitted, the file's
         value (if any) is returned in :attr:`Measurement.sample_time`.
-    input_column : str, default="u"
-        Column (CSV) or variable (NPZ, MAT) holding the fast input.
-    output_column : str, default="y"
+    input_column : str or sequence of str, default="u"
+        Column (CSV) or variable (NPZ, MAT) holding the fast input; a list of
+        names reads one input channel from each (``u_h`` of shape ``(n_u,
+        N)``).
+    output_column : str or sequence of str, default="y"
         Column or variable holding the slow output, either ``M = N/F`` values
-        or a fast-rate column with values at rows ``m F`` only.
+        or a fast-rate column with values at rows ``m F`` only; a list of
+        names reads one output channel from each (``y_l`` of shape ``(n_y,
+        M)``, all in the same layout).
     time_column : str or None, default="auto"
         CSV only: the column holding the time of each row, in seconds (or in
         ms, us when its name ends in ``_ms``, ``_us``). ``"auto"`` uses the
@@ -279,25 +303,46 @@ def read_measurement(
     if sample_time is not None:
         sample_time = check_sample_time(sample_time)
     path = Path(path)
-    if input_column == output_column:
-        raise ValueError(
-            f"input_column and output_column are both {input_column!r}. Name two "
-            "different columns."
-        )
+    inputs = _column_names(input_column, "input_column")
+    outputs = _column_names(output_column, "output_column")
+    _check_distinct(inputs, outputs)
+    if not isinstance(input_column, str):
+        input_column = inputs
+    if not isinstance(output_column, str):
+        output_column = outputs
     file_format = _check_readable(path)
     if file_format == "csv":
-        raw = _read_csv(path, input_column, output_column, time_column, max_samples)
+        raw = _read_csv(path, inputs, outputs, time_column, max_samples)
     elif file_format == "npz":
-        raw = _read_npz(path, input_column, output_column, max_samples)
+        raw = _read_npz(path, inputs, outputs, max_samples)
     else:
-        raw = _read_mat(path, input_column, output_column, max_samples)
+        raw = _read_mat(path, inputs, outputs, max_samples)
     checks = raw.checks
     F = _resolve_factor(path, F, raw, checks)
     sample_time, source = _resolve_sample_time(path, sample_time, raw, checks)
-    u_h = _check_input(path, raw.u, input_column, raw.where, checks)
-    y_l, layout = _slow_output(path, raw.y, u_h.size, F, output_column, raw.where,
-                               checks)
-    checks.append(f"input RMS {_rms(u_h):.4g}, output RMS {_rms(y_l):.4g}")
+    u_h = [_check_input(path, u, name, raw.where, checks)
+           for u, name in zip(raw.u, inputs, strict=True)]
+    _check_equal_lengths(path, u_h, inputs, "input")
+    y_l, layouts = [], []
+    for y, name in zip(raw.y, outputs, strict=True):
+        y_one, layout = _slow_output(path, y, u_h[0].size, F, name, raw.where,
+                                     checks)
+        y_l.append(y_one)
+        layouts.append(layout)
+    if len(set(layouts)) > 1:
+        shown = ", ".join(f"{n!r} {lay}" for n, lay in zip(outputs, layouts,
+                                                           strict=True))
+        raise DataFileError(
+            path,
+            f"the outputs are stored in different layouts ({shown})",
+            "Store every output the same way: all as slow columns of M values, "
+            "or all as fast-rate columns with values every F rows",
+        )
+    layout = layouts[0]
+    u_h = u_h[0] if isinstance(input_column, str) else np.stack(u_h)
+    y_l = y_l[0] if isinstance(output_column, str) else np.stack(y_l)
+    checks.append(f"input RMS {_rms(u_h.ravel()):.4g}, output RMS "
+                  f"{_rms(y_l.ravel()):.4g}")
     digest = raw.sha256 or file_sha256(path)
     checks.append(f"file SHA-256 {digest}")
     logger.debug("read %s: N=%d, M=%d, layout=%s", path, u_h.size, y_l.size, layout)
@@ -315,6 +360,60 @@ def read_measurement(
         sample_time=sample_time,
         sample_time_source=source,
     )
+
+
+def _as_names(names) -> tuple[str, ...]:
+    return (names,) if isinstance(names, str) else tuple(names)
+
+
+def _column_names(names, parameter: str) -> tuple[str, ...]:
+    """One name, or a non-empty sequence of distinct non-empty names."""
+    if isinstance(names, str):
+        names = (names,)
+        one = True
+    else:
+        one = False
+        try:
+            names = tuple(names)
+        except TypeError:
+            raise TypeError(
+                f"{parameter} must be a column name or a list of names. Got "
+                f"{type(names).__name__}."
+            ) from None
+    if not names:
+        raise ValueError(f"{parameter} is an empty list. Name at least one column.")
+    for name in names:
+        if not isinstance(name, str) or not name.strip():
+            raise ValueError(
+                f"{parameter} holds {name!r}, not a column name. Pass non-empty "
+                "strings" + ("" if one else " (e.g. ['u1', 'u2'])") + "."
+            )
+    if len(set(names)) < len(names):
+        raise ValueError(
+            f"{parameter} names a column twice ({', '.join(map(repr, names))}). "
+            "Name each channel once."
+        )
+    return names
+
+
+def _check_distinct(inputs, outputs) -> None:
+    both = [name for name in inputs if name in outputs]
+    if both:
+        raise ValueError(
+            f"input_column and output_column are both {both[0]!r}. Name two "
+            "different columns."
+        )
+
+
+def _check_equal_lengths(path, arrays, names, kind) -> None:
+    sizes = [a.size for a in arrays]
+    if len(set(sizes)) > 1:
+        shown = ", ".join(f"{n!r} {s}" for n, s in zip(names, sizes, strict=True))
+        raise DataFileError(
+            path,
+            f"the {kind} channels have different lengths ({shown} samples)",
+            f"Every {kind} channel of one record must have the same length",
+        )
 
 
 def _rms(x: np.ndarray) -> float:
@@ -553,7 +652,7 @@ def _slow_output(
 # --------------------------------------------------------------------------
 
 
-def _read_csv(path: Path, input_column: str, output_column: str, time_column,
+def _read_csv(path: Path, inputs: tuple, outputs: tuple, time_column,
               max_samples: int) -> _Raw:
     try:
         with open(path, encoding="utf-8-sig", newline="") as fh:
@@ -562,18 +661,17 @@ def _read_csv(path: Path, input_column: str, output_column: str, time_column,
         raise _not_utf8(path, exc) from exc
     indices = [
         _column_index(path, header, name, option)
-        for name, option in (
-            (input_column, "--input-column"),
-            (output_column, "--output-column"),
-        )
+        for names, option in ((inputs, "--input-column"), (outputs, "--output-column"))
+        for name in names
     ]
+    n_u, n_y = len(inputs), len(outputs)
     time_index, time_unit = _time_column_index(path, header, time_column, indices)
     if time_index is not None:
         indices.append(time_index)
     n_lines, digest = _scan(path)
     columns = _csv_columns(
         path, header, delimiter, header_line, indices, max_samples,
-        capacity=n_lines,
+        capacity=n_lines, n_data=n_u + n_y,
     )
     shown = ", ".join(repr(h) for h in header)
     checks = [
@@ -585,10 +683,10 @@ def _read_csv(path: Path, input_column: str, output_column: str, time_column,
     def where(index: int) -> str:
         return f"line {header_line + 1 + index}"
 
-    raw = _Raw(columns[0], columns[1], where, checks, sha256=digest)
+    raw = _Raw(columns[:n_u], columns[n_u:n_u + n_y], where, checks, sha256=digest)
     if time_index is not None:
         name = header[time_index]
-        raw.sample_time = _time_step(path, columns[2] * time_unit, name, where)
+        raw.sample_time = _time_step(path, columns[-1] * time_unit, name, where)
         raw.sample_time_origin = f"its time column {name!r}"
     return raw
 
@@ -739,7 +837,7 @@ def _csv_blocks(path, header, delimiter, header_line, indices):
 
 
 def _csv_columns(path, header, delimiter, header_line, indices, max_samples, *,
-                 capacity: int) -> list[np.ndarray]:
+                 capacity: int, n_data: int | None = None) -> list[np.ndarray]:
     """Parse the chosen columns, block by block, into preallocated arrays."""
     import pandas as pd
 
@@ -781,17 +879,18 @@ def _csv_columns(path, header, delimiter, header_line, indices, max_samples, *,
         raise DataFileError(
             path, "has a header but no data rows", "Write the data below the header"
         )
-    keep = _rows_before_blank_tail(columns[0][:n_rows], columns[1][:n_rows])
+    data = columns[:n_data] if n_data is not None else columns[:2]
+    keep = _rows_before_blank_tail([c[:n_rows] for c in data])
     return [col[:keep] for col in columns]
 
 
-def _rows_before_blank_tail(u: np.ndarray, y: np.ndarray, block: int = 4096) -> int:
+def _rows_before_blank_tail(columns: list, block: int = 4096) -> int:
     """Rows up to the last one with an input or output value: blank lines at the
     end of a file are not data (scanned from the end, block by block)."""
-    stop = u.size
+    stop = columns[0].size
     while stop > 0:
         start = max(stop - block, 0)
-        filled = ~(np.isnan(u[start:stop]) & np.isnan(y[start:stop]))
+        filled = ~np.logical_and.reduce([np.isnan(c[start:stop]) for c in columns])
         if filled.any():
             return start + int(np.flatnonzero(filled)[-1]) + 1
         stop = start
@@ -895,39 +994,38 @@ def _real_vector(path, array: np.ndarray, name: str, kind: str) -> np.ndarray:
     return np.asarray(array, dtype=np.float64).ravel()
 
 
-def _read_npz(path: Path, input_column: str, output_column: str, max_samples: int):
+def _read_npz(path: Path, inputs: tuple, outputs: tuple, max_samples: int):
     try:
         with zipfile.ZipFile(path) as archive:
             members = set(archive.namelist())
             names = sorted(m[:-4] for m in members if m.endswith(".npy"))
-            for name, option in (
-                (input_column, "--input-column"),
-                (output_column, "--output-column"),
-            ):
-                if f"{name}.npy" not in members:
-                    raise DataFileError(
-                        path,
-                        f"no array named {name!r} (the file has "
-                        f"{', '.join(map(repr, names)) or 'no arrays'})",
-                        f"Pass the right name with {option}, or save the array "
-                        f"under that name",
+            for group, option in ((inputs, "--input-column"),
+                                  (outputs, "--output-column")):
+                for name in group:
+                    if f"{name}.npy" not in members:
+                        raise DataFileError(
+                            path,
+                            f"no array named {name!r} (the file has "
+                            f"{', '.join(map(repr, names)) or 'no arrays'})",
+                            f"Pass the right name with {option}, or save the "
+                            "array under that name",
+                        )
+                    with archive.open(f"{name}.npy") as member:
+                        shape, dtype = _npy_header(member)
+                    numeric = (not dtype.hasobject) and (
+                        np.issubdtype(dtype, np.number) or dtype.kind == "b"
                     )
-                with archive.open(f"{name}.npy") as member:
-                    shape, dtype = _npy_header(member)
-                numeric = (not dtype.hasobject) and (
-                    np.issubdtype(dtype, np.number) or dtype.kind == "b"
-                )
-                _check_array_meta(
-                    path, name, shape, str(dtype), numeric, max_samples, "array"
-                )
+                    _check_array_meta(
+                        path, name, shape, str(dtype), numeric, max_samples, "array"
+                    )
             scalars = {
                 key: _npz_scalar(archive, f"{key}.npy")
                 for key in (*_SAMPLE_TIME_KEYS, *_FACTOR_KEYS)
                 if f"{key}.npy" in members
             }
         with np.load(path, allow_pickle=False) as data:
-            u_raw = _real_vector(path, data[input_column], input_column, "array")
-            y_raw = _real_vector(path, data[output_column], output_column, "array")
+            u_raw = [_real_vector(path, data[name], name, "array") for name in inputs]
+            y_raw = [_real_vector(path, data[name], name, "array") for name in outputs]
             scalars = {key: data[key] if ok else None
                        for key, ok in scalars.items()}
     except DataFileError:
@@ -938,9 +1036,10 @@ def _read_npz(path: Path, input_column: str, output_column: str, max_samples: in
             f"is not a readable .npz archive ({type(exc).__name__}: {exc})",
             "Save the data with numpy.savez(path, u=u, y=y)",
         ) from exc
+    shown = " and ".join(", ".join(map(repr, g)) for g in (inputs, outputs))
     checks = [
-        f"format: NumPy .npz loaded with allow_pickle=False, arrays "
-        f"{input_column!r} and {output_column!r} numeric, real, 1-D"
+        f"format: NumPy .npz loaded with allow_pickle=False, arrays {shown} "
+        "numeric, real, 1-D"
     ]
     raw = _Raw(u_raw, y_raw, _index_where, checks)
     _stored_scalars(path, raw, scalars, "array")
@@ -1000,7 +1099,7 @@ def _npy_header(member) -> tuple[tuple[int, ...], np.dtype]:
     return tuple(shape), np.dtype(dtype)
 
 
-def _read_mat(path: Path, input_column: str, output_column: str, max_samples: int):
+def _read_mat(path: Path, inputs: tuple, outputs: tuple, max_samples: int):
     import scipy.io
 
     try:
@@ -1017,10 +1116,9 @@ def _read_mat(path: Path, input_column: str, output_column: str, max_samples: in
             f"is not a readable MATLAB file ({type(exc).__name__}: {exc})",
             "Save it in MATLAB with save(..., '-v7'), or export CSV or .npz",
         ) from exc
-    for name, option in (
-        (input_column, "--input-column"),
-        (output_column, "--output-column"),
-    ):
+    wanted = [(name, option) for group, option in (
+        (inputs, "--input-column"), (outputs, "--output-column")) for name in group]
+    for name, option in wanted:
         if name not in contents:
             raise DataFileError(
                 path,
@@ -1036,7 +1134,7 @@ def _read_mat(path: Path, input_column: str, output_column: str, max_samples: in
     stored = [key for key in (*_SAMPLE_TIME_KEYS, *_FACTOR_KEYS) if key in contents]
     try:
         data = scipy.io.loadmat(
-            path, variable_names=[input_column, output_column, *stored],
+            path, variable_names=[*inputs, *outputs, *stored],
             squeeze_me=False,
         )
     except Exception as exc:  # pragma: no cover - whosmat read it already
@@ -1045,11 +1143,12 @@ def _read_mat(path: Path, input_column: str, output_column: str, max_samples: in
             f"could not be loaded ({type(exc).__name__}: {exc})",
             "Save it in MATLAB with save(..., '-v7'), or export CSV or .npz",
         ) from exc
-    u_raw = _real_vector(path, data[input_column], input_column, "variable")
-    y_raw = _real_vector(path, data[output_column], output_column, "variable")
+    u_raw = [_real_vector(path, data[name], name, "variable") for name in inputs]
+    y_raw = [_real_vector(path, data[name], name, "variable") for name in outputs]
+    shown = " and ".join(", ".join(map(repr, g)) for g in (inputs, outputs))
     checks = [
-        f"format: MATLAB .mat, variables {input_column!r} and {output_column!r} "
-        "checked (numeric class, real, vector) before use"
+        f"format: MATLAB .mat, variables {shown} checked (numeric class, real, "
+        "vector) before use"
     ]
     raw = _Raw(u_raw, y_raw, _index_where, checks)
     scalars = {

@@ -207,7 +207,9 @@ def frf_table(estimator) -> dict[str, np.ndarray]:
     dict of str to ndarray of shape (n_freq,)
         Keys :data:`FRF_COLUMNS`: frequency in Hz, real and imaginary parts,
         magnitude in dB, phase in degrees (wrapped to (-180, 180]), standard
-        deviation of the complex estimate, and validity (bool).
+        deviation of the complex estimate, and validity (bool). For a MIMO
+        estimate every column but ``frequency_hz`` has shape ``(n_y, n_u,
+        n_freq)``, entry ``[o, i]`` from input ``i`` to output ``o``.
     """
     frf = np.asarray(estimator.frf_, dtype=complex)
     magnitude = np.abs(frf)
@@ -235,7 +237,10 @@ def write_frf_csv(
     """Write an FRF table (see :func:`frf_table`) as CSV, atomically.
 
     One header row with :data:`FRF_COLUMNS`, then one row per frequency;
-    numbers with 10 significant digits, ``valid`` as 0/1, NaN as ``nan``.
+    numbers with 10 significant digits, ``valid`` as 0/1, NaN as ``nan``. A
+    MIMO table is written in long form: two more leading columns ``output``
+    and ``input`` (0-based channel indices), then the rows of entry ``[0,
+    0]``, ``[0, 1]``, ... in that order, each over all frequencies.
 
     Parameters
     ----------
@@ -268,7 +273,8 @@ def write_frf_npz(
 ) -> Path:
     """Write an FRF table as ``.npz`` (no pickles), atomically.
 
-    Holds the :data:`FRF_COLUMNS` arrays, the complex ``frf``, and each
+    Holds the :data:`FRF_COLUMNS` arrays (``(n_y, n_u, n_freq)`` each but
+    ``frequency_hz`` for a MIMO table), the complex ``frf``, and each
     ``metadata`` item as a 0-d array (numbers or strings only), so it loads
     with ``np.load(path, allow_pickle=False)``. Parameters as
     :func:`write_frf_csv`.
@@ -304,14 +310,27 @@ def _savez(fh, arrays: dict) -> None:
 
 
 def _frf_csv(fh, table: dict) -> None:
-    columns = [np.asarray(table[name]) for name in FRF_COLUMNS]
-    n_rows = columns[0].size
+    frequency = np.asarray(table["frequency_hz"])
+    values = [np.asarray(table[name]) for name in FRF_COLUMNS[1:]]
     text = io.TextIOWrapper(fh, encoding="utf-8", newline="")
-    text.write(",".join(FRF_COLUMNS) + "\n")
-    for start in range(0, n_rows, CSV_CHUNK_ROWS):
-        stop = min(start + CSV_CHUNK_ROWS, n_rows)
-        block = np.column_stack([col[start:stop].astype(float) for col in columns])
-        np.savetxt(text, block, delimiter=",", fmt=["%.10g"] * 6 + ["%d"])
+    mimo = values[0].ndim == 3
+    if mimo:
+        text.write(",".join(("output", "input", *FRF_COLUMNS)) + "\n")
+        entries = list(np.ndindex(values[0].shape[:2]))
+    else:
+        text.write(",".join(FRF_COLUMNS) + "\n")
+        entries = [()]
+    n_rows = frequency.size
+    for entry in entries:
+        for start in range(0, n_rows, CSV_CHUNK_ROWS):
+            stop = min(start + CSV_CHUNK_ROWS, n_rows)
+            block = [frequency[start:stop].astype(float)]
+            block += [col[entry][start:stop].astype(float) for col in values]
+            fmt = ["%.10g"] * 6 + ["%d"]
+            if mimo:
+                block = [np.full(stop - start, e, dtype=float) for e in entry] + block
+                fmt = ["%d", "%d"] + fmt
+            np.savetxt(text, np.column_stack(block), delimiter=",", fmt=fmt)
     text.flush()
     text.detach()
 
