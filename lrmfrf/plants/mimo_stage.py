@@ -185,6 +185,40 @@ class MIMOWaferStage:
         to the four actuator forces (minimum norm)."""
         return _decoupling(self.half_width)[1]
 
+    def controller_at(
+        self, sample_time: float, *, bandwidth_hz: float | None = None
+    ) -> control.StateSpace:
+        """The stage's decoupled lead-PID design, discretised at another rate.
+
+        E.g. ``stage.controller_at(F * stage.sample_time)`` is a controller
+        that runs on the slow samples of the encoders (vision in the loop, see
+        :func:`lrmfrf.simulate.simulate_slow_feedback`).
+
+        Parameters
+        ----------
+        sample_time : float
+            Controller sample time in s.
+        bandwidth_hz : float, optional
+            Crossover of each decoupled loop; default ``controller_bandwidth``
+            (a slow loop usually needs a lower one for its phase margin).
+
+        Returns
+        -------
+        control.StateSpace
+            4 x 4, encoders in, actuator forces out, ``dt = sample_time``.
+            Check the loop it closes (e.g. with
+            :func:`lrmfrf.simulate.simulate_slow_feedback`, which refuses an
+            unstable one).
+        """
+        check_sample_time(sample_time)
+        bandwidth = self.controller_bandwidth if bandwidth_hz is None else bandwidth_hz
+        if not (np.isfinite(bandwidth) and bandwidth > 0):
+            raise ValueError(
+                f"bandwidth_hz must be a positive number of Hz; got {bandwidth_hz!r}."
+            )
+        parts = _rigid_controllers(bandwidth, (self.mass, *self.inertia), sample_time)
+        return _decoupled_controller(parts, *_decoupling(self.half_width), sample_time)
+
     def margins(self) -> dict[str, Margins]:
         """Margins of the three decoupled loops, ``{"heave": ..., "roll": ...,
         "pitch": ...}``.
