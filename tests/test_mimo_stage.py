@@ -179,3 +179,25 @@ def test_control_library_agrees_on_the_closed_loop(stage):
     G_fb = response(fb, FREQUENCIES_HZ)
     G = response(stage.G, FREQUENCIES_HZ)
     np.testing.assert_allclose(G[:4], G_fb, rtol=1e-8)
+
+
+def test_controller_at_another_rate():
+    """The design at the stage's own rate is the stage's controller; at the slow
+    rate (vision in the loop) it stabilises the slow-feedback loop."""
+    from lrmfrf.simulate import simulate_slow_feedback
+
+    stage = mimo_wafer_stage()
+    same = stage.controller_at(stage.sample_time)
+    for name in ("A", "B", "C", "D"):
+        np.testing.assert_array_equal(getattr(same, name),
+                                      getattr(stage.controller, name))
+    F = stage.downsampling_factor
+    slow = stage.controller_at(F * stage.sample_time, bandwidth_hz=20.0)
+    assert slow.dt == pytest.approx(F * stage.sample_time)
+    assert (slow.ninputs, slow.noutputs) == (4, 4)
+    r = np.random.default_rng(0).standard_normal((4, 600))
+    sim = simulate_slow_feedback(stage.plant, slow, r, F,
+                                 feedback_outputs=stage.feedback_outputs)
+    assert np.all(np.isfinite(sim.y_l)) and sim.y_l.shape == (5, 200)
+    with pytest.raises(ValueError, match="bandwidth_hz must be a positive"):
+        stage.controller_at(stage.sample_time, bandwidth_hz=-1.0)
