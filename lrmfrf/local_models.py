@@ -24,7 +24,12 @@ from .solvers import (
     solve_local_least_squares,
     solve_local_normal_equations,
 )
-from .windows import LocalModelLayout, band_indices, local_regressor
+from .windows import (
+    LocalModelLayout,
+    band_indices,
+    local_regressor,
+    window_offsets,
+)
 
 __all__ = [
     "SOLVERS",
@@ -270,18 +275,19 @@ def window_excitation(U: np.ndarray, slow_bins: np.ndarray, layout) -> np.ndarra
         ``sum_{p,r} |U_{p,i}(k+r+fM)|^2`` divided by its average over all
         windows and bands of input ``i`` (band ``b = i F + f``).
     """
-    n_u = layout.n_inputs
-    N = U.shape[1] // n_u
-    M = N // layout.F
-    energy = np.sum(np.abs(U) ** 2, axis=0).reshape(n_u, N)
-    n = layout.half_window
-    padded = np.concatenate([energy[:, N - n :], energy, energy[:, :n]], axis=1)
-    csum = np.concatenate([np.zeros((n_u, 1)), np.cumsum(padded, axis=1)], axis=1)
-    moving = csum[:, layout.window :] - csum[:, : -layout.window]  # centred sums
-    reference = layout.window * energy.mean(axis=1, keepdims=True)
+    slow_bins = np.asarray(slow_bins, dtype=int)
+    reference = _excitation_reference(
+        _mean_input_energy(U, layout.n_inputs), layout
+    )
+    n_slow = U.shape[1] // layout.n_bands
+    return _relative_excitation(U, n_slow, slow_bins, layout, reference)
+
+
+def _relative_excitation(U, n_slow, bins, layout, reference) -> np.ndarray:
+    """:func:`_window_energy` over ``reference`` (0 where that is 0)."""
+    energy = _window_energy(U, n_slow, bins, layout)
     with np.errstate(invalid="ignore", divide="ignore"):
-        relative = np.where(reference > 0, moving / reference, 0.0).ravel()
-    return relative[band_indices(slow_bins, layout, M)]
+        return np.where(reference > 0, energy / reference, 0.0)
 
 
 def fit_local_models(
@@ -349,7 +355,6 @@ def fit_local_models(
     :func:`rescale_local_fit`), so any finite scale gives the same FRF.
     """
     U, Y, u_exponent, y_exponent = normalise_spectra(U, Y)
-    F = layout.F
     M = Y.shape[1]
     if slow_bins is None:
         slow_bins = half_slow_bins(M)
@@ -362,47 +367,70 @@ def fit_local_models(
         compiled = solver == "normal" and backend == "numba"
         chunk_size = slow_bins.size if compiled else default_chunk_size(layout, solver)
     chunk_size = max(1, chunk_size)
-    # Identifiability of G is decided by the input and transient columns.
-    kwargs = {"rank_columns": layout.n_system + layout.n_transient}
-    nb = layout.n_bands
-    if return_cov:
-        kwargs["cov_columns"] = nb
-    if rank_tol is not None:
-        kwargs["rank_tol"] = rank_tol
-
+    options = _ChunkOptions(
+        solver, backend, refine_steps, rank_tol, return_leverage, return_cov
+    )
+    reference = _excitation_reference(
+        _mean_input_energy(U, layout.n_inputs), layout
+    )
     parts = []
     with _single_threaded_blas() if solver == "normal" else contextlib.nullcontext():
         for start in range(0, slow_bins.size, chunk_size):
             bins = slow_bins[start : start + chunk_size]
-            if solver == "normal":
-                parts.append(
-                    solve_local_normal_equations(
-                        U, Y, bins, layout, refine_steps=refine_steps,
-                        backend=backend, **kwargs
-                    )
-                )
-            else:
-                A, b = local_regressor(U, Y, bins, layout)
-                parts.append(
-                    solve_local_least_squares(
-                        A, b, return_leverage=return_leverage, **kwargs
-                    )
-                )
+            parts.append(_fit_chunk(U, Y, bins, layout, reference, options))
+    fit = _joined_fits(parts, slow_bins)
+    return rescale_local_fit(fit, u_exponent, y_exponent)
 
-    theta, gram_inv_diag, rss, well_posed = (
-        _joined([getattr(s, name) for s in parts])
-        for name in ("theta", "gram_inv_diag", "rss", "well_posed")
-    )
+
+@dataclass(frozen=True)
+class _ChunkOptions:
+    """Solver settings shared by the chunks of one fit."""
+
+    solver: str
+    backend: str
+    refine_steps: int
+    rank_tol: float | None
+    return_leverage: bool
+    return_cov: bool
+
+
+def _fit_chunk(U, Y, bins, layout, reference, options: _ChunkOptions):
+    """The closed form and its Lemma 2 results on one chunk of windows.
+
+    ``U`` (P, n_u N') and ``Y`` (P, M') are the spectra the windows ``bins``
+    read (the full DFTs, or the compact ones of :meth:`OneSidedSpectra.
+    window_spectra`); ``reference`` is the mean input energy of
+    :func:`_mean_input_energy` of the full records. Returns a
+    :class:`LocalModelFit` of the chunk (``slow_bins`` as given).
+    """
+    F, nb = layout.F, layout.n_bands
+    # Identifiability of G is decided by the input and transient columns.
+    kwargs = {"rank_columns": layout.n_system + layout.n_transient}
+    if options.return_cov:
+        kwargs["cov_columns"] = nb
+    if options.rank_tol is not None:
+        kwargs["rank_tol"] = options.rank_tol
+    if options.solver == "normal":
+        sol = solve_local_normal_equations(
+            U, Y, bins, layout, refine_steps=options.refine_steps,
+            backend=options.backend, **kwargs
+        )
+    else:
+        A, b = local_regressor(U, Y, bins, layout)
+        sol = solve_local_least_squares(
+            A, b, return_leverage=options.return_leverage, **kwargs
+        )
+        del A, b
+    excited = (_relative_excitation(U, Y.shape[1], bins, layout, reference)
+               > EXCITATION_TOL).all(axis=1)
+    well_posed = sol.well_posed & excited
+    noise_var = noise_variance(sol.rss, layout.dof)
     system_cov = None
-    if return_cov:
-        lead = _joined([s.lead_cov for s in parts])
-        system_cov = F**2 * lead * noise_variance(rss, layout.dof)[:, None, None]
-    excited = (window_excitation(U, slow_bins, layout) > EXCITATION_TOL).all(axis=1)
-    well_posed = well_posed & excited
-    leverage = _joined([s.leverage for s in parts]) if return_leverage else None
-    noise_var = noise_variance(rss, layout.dof)
+    if options.return_cov:
+        system_cov = F**2 * sol.lead_cov * noise_var[:, None, None]
+    theta, rss = sol.theta, sol.rss
     system = F * theta[:, :nb]
-    system_var = lemma2_variance(gram_inv_diag[:, :nb], noise_var, F)
+    system_var = lemma2_variance(sol.gram_inv_diag[:, :nb], noise_var, F)
     transient_cols = [layout.transient_column(p) for p in range(layout.n_experiments)]
     transient = theta[:, transient_cols]
     bad = np.flatnonzero(~well_posed)
@@ -410,9 +438,9 @@ def fit_local_models(
         arr[bad] = np.nan
     if system_cov is not None:
         system_cov[bad] = np.nan
-    fit = LocalModelFit(
+    return LocalModelFit(
         layout=layout,
-        slow_bins=slow_bins,
+        slow_bins=bins,
         theta=theta,
         system=system,
         system_var=system_var,
@@ -421,10 +449,80 @@ def fit_local_models(
         rss=rss,
         well_posed=well_posed,
         excited=excited,
-        leverage=leverage,
+        leverage=sol.leverage if options.return_leverage else None,
         system_cov=system_cov,
     )
-    return rescale_local_fit(fit, u_exponent, y_exponent)
+
+
+def _joined_fits(parts: list[LocalModelFit], slow_bins: np.ndarray) -> LocalModelFit:
+    """One fit from the fits of consecutive chunks (the single chunk itself),
+    filled into arrays allocated once."""
+    if len(parts) == 1:
+        return replace(parts[0], slow_bins=slow_bins)
+    fields = {}
+    B = slow_bins.size
+    for name in _PER_WINDOW_FIELDS:
+        first = getattr(parts[0], name)
+        if first is None:
+            fields[name] = None
+            continue
+        out = np.empty((B,) + first.shape[1:], dtype=first.dtype)
+        start = 0
+        for part in parts:
+            values = getattr(part, name)
+            out[start : start + values.shape[0]] = values
+            start += values.shape[0]
+        fields[name] = out
+    return LocalModelFit(layout=parts[0].layout, slow_bins=slow_bins, **fields)
+
+
+#: The per-window arrays of :class:`LocalModelFit` (all but layout, slow_bins).
+_PER_WINDOW_FIELDS = (
+    "theta", "system", "system_var", "transient", "noise_var", "rss",
+    "well_posed", "excited", "leverage", "system_cov",
+)
+
+
+def _excitation_reference(mean_energy: np.ndarray, layout) -> np.ndarray:
+    """Window energy of a band at its input's average: the denominator of the
+    relative excitation, shape (n_bands,).
+
+    ``mean_energy`` (n_u,) is ``mean_j sum_p |U_{p,i}(j)|^2`` over the ``N``
+    fast bins of each input (:func:`_mean_input_energy`).
+    """
+    return layout.window * np.repeat(mean_energy, layout.F)
+
+
+def _mean_input_energy(U: np.ndarray, n_inputs: int) -> np.ndarray:
+    """``mean_j sum_p |U_{p,i}(j)|^2`` over the fast bins, per input.
+
+    Parameters
+    ----------
+    U : ndarray of shape (P, n_u N), complex
+        Full DFTs, inputs concatenated.
+    n_inputs : int
+
+    Returns
+    -------
+    ndarray of shape (n_u,)
+    """
+    parts = U.reshape(U.shape[0], n_inputs, -1)
+    return np.array([
+        np.sum(parts[:, i].real ** 2 + parts[:, i].imag ** 2) / parts.shape[2]
+        for i in range(n_inputs)
+    ])
+
+
+def _window_energy(U: np.ndarray, n_slow: int, bins: np.ndarray, layout):
+    """``sum_{p,r} |U_{p,i}(k+r+fM)|^2`` per window ``k`` and band ``b = i F +
+    f``, shape (B, n_bands) (``U`` of shape (P, n_u N) with ``N = F n_slow``)."""
+    r, _ = window_offsets(layout.half_window)
+    out = np.zeros((bins.size, layout.n_bands))
+    idx = band_indices(bins[:, None] + r, layout, n_slow)  # (B, L, n_bands)
+    for p in range(U.shape[0]):
+        values = U[p][idx]
+        out += np.sum(values.real**2 + values.imag**2, axis=1)
+    return out
 
 
 def default_chunk_size(layout: LocalModelLayout, solver: str = "qr") -> int:
@@ -436,11 +534,6 @@ def default_chunk_size(layout: LocalModelLayout, solver: str = "qr") -> int:
         3 * p * p + 6 * L * (layout.n_bands + 2) * layout.n_experiments
     )
     return max(1, CHUNK_BYTES // per_window)
-
-
-def _joined(parts: list[np.ndarray]) -> np.ndarray:
-    """Concatenate per-chunk results (no copy for a single chunk)."""
-    return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
 def _check_solver(solver: str, return_leverage: bool) -> str:
