@@ -35,7 +35,11 @@ __all__ = [
     "SOLVERS",
     "dft",
     "LocalModelFit",
+    "OneSidedSpectra",
     "fit_local_models",
+    "fit_one_sided",
+    "iter_local_fits",
+    "fast_grid_targets",
     "default_chunk_size",
     "half_slow_bins",
     "normalise_spectra",
@@ -523,6 +527,272 @@ def _window_energy(U: np.ndarray, n_slow: int, bins: np.ndarray, layout):
         values = U[p][idx]
         out += np.sum(values.real**2 + values.imag**2, axis=1)
     return out
+
+
+@dataclass(frozen=True)
+class OneSidedSpectra:
+    """One-sided DFTs of real records: all the local models read, in half the
+    memory of the full DFTs.
+
+    The DFT of a real record is conjugate-symmetric, ``X(N-j) = conj(X(j))``,
+    so bins ``0..N//2`` (:func:`scipy.fft.rfft`) hold it all; the windows
+    read any bin ``j mod N`` through :meth:`window_spectra`. The values are
+    bit for bit those of :func:`dft` (scipy's real FFT returns the same
+    numbers as its complex FFT, whose upper half is the exact conjugate).
+
+    Attributes
+    ----------
+    inputs : ndarray of shape (P, n_u, N//2+1), complex
+        One-sided DFTs of the fast inputs.
+    outputs : ndarray of shape (P, n_y, M//2+1), complex
+        One-sided DFTs of the slow outputs.
+    n_samples : int
+        ``N``.
+    F : int
+        Downsampling factor, ``M = N / F``.
+    """
+
+    inputs: np.ndarray
+    outputs: np.ndarray
+    n_samples: int
+    F: int
+
+    @classmethod
+    def from_records(cls, u: np.ndarray, y: np.ndarray, F: int) -> OneSidedSpectra:
+        """DFTs of real records ``u`` (P, n_u, N) and ``y`` (P, n_y, N/F)."""
+        return cls(
+            sp_fft.rfft(u, axis=-1), sp_fft.rfft(y, axis=-1), u.shape[-1], int(F)
+        )
+
+    @property
+    def n_slow(self) -> int:
+        """``M``."""
+        return self.n_samples // self.F
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held (both spectra)."""
+        return self.inputs.nbytes + self.outputs.nbytes
+
+    def full_inputs(self) -> np.ndarray:
+        """Full input DFTs, inputs concatenated: (P, n_u N), as :func:`dft`."""
+        P, n_u, _ = self.inputs.shape
+        full = _full_spectrum(self.inputs, self.n_samples)
+        return full.reshape(P, n_u * self.n_samples)
+
+    def full_outputs(self, output: int) -> np.ndarray:
+        """Full DFT of one output channel of every experiment: (P, M)."""
+        return _full_spectrum(self.outputs[:, output], self.n_slow)
+
+    def window_spectra(self, start: int, stop: int, half_window: int, output: int):
+        """Compact spectra of the windows centred on slow bins ``start..stop-1``.
+
+        The windows read slow bins ``k+r`` and fast bins ``k+r+fM`` (mod ``N``)
+        for ``|r| <= n``; the compact problem holds exactly those values with
+        a slow length ``M' = stop - start + 2n`` laid out so that the local
+        problem of window ``k`` is that of bin ``k - start + n`` of the compact
+        spectra, read without wrapping (:func:`lrmfrf.windows.band_indices`
+        with ``M'`` and ``N' = F M'``).
+
+        Returns
+        -------
+        U : ndarray of shape (P, n_u F M'), complex
+        Y : ndarray of shape (P, M'), complex
+        bins : ndarray of shape (stop - start,), int
+            The compact window centres ``n .. n + stop - start - 1``.
+        """
+        N, M, F = self.n_samples, self.n_slow, self.F
+        slow = np.arange(start - half_window, stop + half_window)  # (M',)
+        fast = (slow[None, :] + M * np.arange(F)[:, None]) % N  # (F, M')
+        P, n_u, _ = self.inputs.shape
+        U = _periodic_values(self.inputs, fast.ravel(), N).reshape(P, -1)
+        Y = _periodic_values(self.outputs[:, output], slow % M, M)
+        bins = np.arange(stop - start) + half_window
+        return U, Y, bins
+
+
+def _full_spectrum(half: np.ndarray, length: int) -> np.ndarray:
+    """Full DFT (..., length) from its one-sided part (..., length//2+1)."""
+    full = np.empty(half.shape[:-1] + (length,), dtype=complex)
+    h = length // 2 + 1
+    full[..., :h] = half
+    np.conjugate(half[..., 1 : length - h + 1][..., ::-1], out=full[..., h:])
+    return full
+
+
+def _periodic_values(half: np.ndarray, idx: np.ndarray, length: int) -> np.ndarray:
+    """DFT values at bins ``idx`` in ``0..length-1`` from the one-sided part
+    ``half`` (..., length//2+1): ``conj(half[length - j])`` above the middle."""
+    mirrored = idx > length // 2
+    values = half[..., np.where(mirrored, length - idx, idx)]
+    np.conjugate(values, out=values, where=mirrored)
+    return values
+
+
+def _one_sided_mean_energy(half: np.ndarray, length: int) -> np.ndarray:
+    """:func:`_mean_input_energy` from one-sided DFTs (P, n_u, length//2+1)."""
+    P, n_u, h = half.shape
+    mirrored_end = length - h + 1  # bins 1..mirrored_end-1 occur twice
+    total = np.zeros(n_u)
+    block = 2**18
+    for start in range(0, h, block):
+        part = half[:, :, start : start + block]
+        energy = np.sum(part.real**2 + part.imag**2, axis=0)  # (n_u, b)
+        j = np.arange(start, start + part.shape[2])
+        twice = (j >= 1) & (j < mirrored_end)
+        total += energy.sum(axis=1) + energy[:, twice].sum(axis=1)
+    return total / length
+
+
+def iter_local_fits(
+    spectra: OneSidedSpectra,
+    layout: LocalModelLayout,
+    *,
+    output: int = 0,
+    chunk_size: int | None = None,
+    backend: str = "auto",
+    refine_steps: int = 1,
+    return_cov: bool = False,
+):
+    """Closed-form local models of slow bins ``0..M//2``, chunk by chunk.
+
+    The streaming form of :func:`fit_local_models` for real records: each
+    chunk reads compact spectra (:meth:`OneSidedSpectra.window_spectra`), so
+    nothing of the size of the grid is allocated, and the caller keeps only
+    what it needs of each chunk. The results are those of
+    ``fit_local_models(spectra.full_inputs(), spectra.full_outputs(output),
+    layout, solver="normal", ...)`` at the same bins (each window's problem
+    holds the same values; the compiled kernel solves every window alone, so
+    chunking does not change it, and the numpy path uses the same chunks).
+
+    Parameters
+    ----------
+    spectra : OneSidedSpectra
+    layout : LocalModelLayout
+    output : int, default=0
+        Output channel (one local problem per output row).
+    chunk_size : int, optional
+        Windows per chunk; default :func:`default_chunk_size` for the numpy
+        path and :func:`stream_chunk_size` for the compiled kernel.
+    backend : {"auto", "numpy", "numba"}, default="auto"
+        Resolved once for all ``M//2+1`` windows, as in
+        :func:`fit_local_models`.
+    refine_steps : int, default=1
+    return_cov : bool, default=False
+
+    Yields
+    ------
+    start : int
+        First slow bin of the chunk.
+    fit : LocalModelFit
+        The chunk's results, ``slow_bins = start .. start + B_chunk - 1``.
+    """
+    M = spectra.n_slow
+    n_bins = M // 2 + 1
+    backend = resolve_backend(backend, n_bins, layout.n_params)
+    if chunk_size is None:
+        compiled = backend == "numba"
+        chunk_size = stream_chunk_size(layout) if compiled else default_chunk_size(
+            layout, "normal"
+        )
+    chunk_size = max(1, chunk_size)
+    # the exponents normalise_spectra would take on the full DFTs (the same
+    # largest |real| and |imag| parts), applied to each chunk's copy
+    u_exponent = power_of_two_exponent(spectra.inputs)
+    y_exponent = power_of_two_exponent(spectra.outputs[:, output])
+    mean_energy = _one_sided_mean_energy(spectra.inputs, spectra.n_samples)
+    reference = _excitation_reference(
+        scale_by_power_of_two(mean_energy, -2 * u_exponent), layout
+    )
+    options = _ChunkOptions("normal", backend, refine_steps, None, False, return_cov)
+    for start in range(0, n_bins, chunk_size):
+        stop = min(n_bins, start + chunk_size)
+        U, Y, bins = spectra.window_spectra(start, stop, layout.half_window, output)
+        U = scale_by_power_of_two(U, -u_exponent)
+        Y = scale_by_power_of_two(Y, -y_exponent)
+        with _single_threaded_blas():
+            fit = _fit_chunk(U, Y, bins, layout, reference, options)
+        del U, Y
+        fit = replace(fit, slow_bins=np.arange(start, stop))
+        yield start, rescale_local_fit(fit, u_exponent, y_exponent)
+
+
+def fit_one_sided(
+    spectra: OneSidedSpectra,
+    layout: LocalModelLayout,
+    *,
+    output: int = 0,
+    return_cov: bool = False,
+    **kwargs,
+) -> LocalModelFit:
+    """All chunks of :func:`iter_local_fits` as one :class:`LocalModelFit`.
+
+    Equal to ``fit_local_models(spectra.full_inputs(),
+    spectra.full_outputs(output), layout, return_cov=return_cov)`` without
+    forming the full DFTs. ``kwargs`` go to :func:`iter_local_fits`.
+    """
+    parts = [
+        fit for _, fit in iter_local_fits(
+            spectra, layout, output=output, return_cov=return_cov, **kwargs
+        )
+    ]
+    return _joined_fits(parts, half_slow_bins(spectra.n_slow))
+
+
+def stream_chunk_size(layout: LocalModelLayout) -> int:
+    """Windows per chunk of :func:`iter_local_fits` with the compiled kernel.
+
+    Bounds a chunk's arrays (compact spectra, parameters, Lemma 2 blocks,
+    window energies and the caller's per-chunk copies) to about
+    ``CHUNK_BYTES / 2``: the kernel solves each window alone, so the chunk
+    only sets how much is held at once.
+    """
+    p, nb, P = layout.n_params, layout.n_bands, layout.n_experiments
+    n_centre = nb + P
+    per_window = 8 * (
+        4 * p  # theta (complex) and the Lemma 2 diagonal, twice
+        + 2 * n_centre**2 + 6 * nb * nb  # centre block, lead and system_cov
+        + 8 * nb + 4 * P  # band values, variances, transients
+        + 3 * layout.window * nb  # window energies (values and indices)
+    )
+    return max(1024, CHUNK_BYTES // 2 // per_window)
+
+
+def fast_grid_targets(start: int, stop: int, n_samples: int, F: int):
+    """Fast bins ``0..N//2`` that :func:`one_sided_fast_grid` fills from the
+    slow bins ``start..stop-1``.
+
+    Fast bin ``j`` takes ``values[k, f]`` (``j = k + fM``) or, mirrored,
+    ``conj(values[k, f])`` with ``N - j = k + fM``; each ``j`` has exactly
+    one source.
+
+    Returns
+    -------
+    fast : ndarray of shape (T,), int
+        The fast bins ``j``.
+    slow : ndarray of shape (T,), int
+        Their source slow bin relative to ``start`` (``k - start``).
+    band : ndarray of shape (T,), int
+        The source band ``f``.
+    mirrored : ndarray of shape (T,), bool
+        Whether the value is conjugated.
+    """
+    M = n_samples // F
+    half = n_samples // 2
+    k = np.arange(start, stop)
+    f = np.arange(F)[:, None]
+    direct = k + f * M  # values[k, f] at j = k + fM
+    mirror = n_samples - direct  # mirrored: j % M = M - k > M//2
+    mirror_ok = (k > 0) & (M - k > M // 2) & (mirror <= half)
+    direct_ok = direct <= half
+    kk = np.broadcast_to(k - start, direct.shape)
+    ff = np.broadcast_to(f, direct.shape)
+    fast = np.concatenate([direct[direct_ok], mirror[mirror_ok]])
+    slow = np.concatenate([kk[direct_ok], kk[mirror_ok]])
+    band = np.concatenate([ff[direct_ok], ff[mirror_ok]])
+    mirrored = np.zeros(fast.size, dtype=bool)
+    mirrored[np.count_nonzero(direct_ok):] = True
+    return fast, slow, band, mirrored
 
 
 def default_chunk_size(layout: LocalModelLayout, solver: str = "qr") -> int:
