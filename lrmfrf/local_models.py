@@ -5,6 +5,12 @@ eq. (Kvector) for a chunk of slow bins at a time (bounded memory), solves the
 closed form eq. (linearSolution), and returns the FRF in the ``F`` aliased
 bands with its Lemma 2 variance. ``one_sided_fast_grid`` maps the slow-bin
 results to the fast grid ``k = 0..N//2`` using conjugate symmetry.
+
+The estimators use the streaming form: ``iter_local_fits`` solves the same
+problems chunk by chunk from the one-sided DFTs of the real records
+(``OneSidedSpectra``), each chunk on compact spectra that hold only its
+windows' bins, and ``fast_grid_targets`` says which fast bins a chunk fills;
+nothing of the size of the grid is allocated besides the outputs.
 """
 
 from __future__ import annotations
