@@ -5,6 +5,12 @@ eq. (Kvector) for a chunk of slow bins at a time (bounded memory), solves the
 closed form eq. (linearSolution), and returns the FRF in the ``F`` aliased
 bands with its Lemma 2 variance. ``one_sided_fast_grid`` maps the slow-bin
 results to the fast grid ``k = 0..N//2`` using conjugate symmetry.
+
+The estimators use the streaming form: ``iter_local_fits`` solves the same
+problems chunk by chunk from the one-sided DFTs of the real records
+(``OneSidedSpectra``), each chunk on compact spectra that hold only its
+windows' bins, and ``fast_grid_targets`` says which fast bins a chunk fills;
+nothing of the size of the grid is allocated besides the outputs.
 """
 
 from __future__ import annotations
@@ -13,6 +19,7 @@ import contextlib
 from dataclasses import dataclass, replace
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 from scipy import fft as sp_fft
 
 from .solvers import (
@@ -24,13 +31,22 @@ from .solvers import (
     solve_local_least_squares,
     solve_local_normal_equations,
 )
-from .windows import LocalModelLayout, band_indices, local_regressor
+from .windows import (
+    LocalModelLayout,
+    band_indices,
+    local_regressor,
+    window_offsets,
+)
 
 __all__ = [
     "SOLVERS",
     "dft",
     "LocalModelFit",
+    "OneSidedSpectra",
     "fit_local_models",
+    "fit_one_sided",
+    "iter_local_fits",
+    "fast_grid_targets",
     "default_chunk_size",
     "half_slow_bins",
     "normalise_spectra",
@@ -270,18 +286,19 @@ def window_excitation(U: np.ndarray, slow_bins: np.ndarray, layout) -> np.ndarra
         ``sum_{p,r} |U_{p,i}(k+r+fM)|^2`` divided by its average over all
         windows and bands of input ``i`` (band ``b = i F + f``).
     """
-    n_u = layout.n_inputs
-    N = U.shape[1] // n_u
-    M = N // layout.F
-    energy = np.sum(np.abs(U) ** 2, axis=0).reshape(n_u, N)
-    n = layout.half_window
-    padded = np.concatenate([energy[:, N - n :], energy, energy[:, :n]], axis=1)
-    csum = np.concatenate([np.zeros((n_u, 1)), np.cumsum(padded, axis=1)], axis=1)
-    moving = csum[:, layout.window :] - csum[:, : -layout.window]  # centred sums
-    reference = layout.window * energy.mean(axis=1, keepdims=True)
+    slow_bins = np.asarray(slow_bins, dtype=int)
+    reference = _excitation_reference(
+        _mean_input_energy(U, layout.n_inputs), layout
+    )
+    n_slow = U.shape[1] // layout.n_bands
+    return _relative_excitation(U, n_slow, slow_bins, layout, reference)
+
+
+def _relative_excitation(U, n_slow, bins, layout, reference) -> np.ndarray:
+    """:func:`_window_energy` over ``reference`` (0 where that is 0)."""
+    energy = _window_energy(U, n_slow, bins, layout)
     with np.errstate(invalid="ignore", divide="ignore"):
-        relative = np.where(reference > 0, moving / reference, 0.0).ravel()
-    return relative[band_indices(slow_bins, layout, M)]
+        return np.where(reference > 0, energy / reference, 0.0)
 
 
 def fit_local_models(
@@ -349,7 +366,6 @@ def fit_local_models(
     :func:`rescale_local_fit`), so any finite scale gives the same FRF.
     """
     U, Y, u_exponent, y_exponent = normalise_spectra(U, Y)
-    F = layout.F
     M = Y.shape[1]
     if slow_bins is None:
         slow_bins = half_slow_bins(M)
@@ -362,47 +378,70 @@ def fit_local_models(
         compiled = solver == "normal" and backend == "numba"
         chunk_size = slow_bins.size if compiled else default_chunk_size(layout, solver)
     chunk_size = max(1, chunk_size)
-    # Identifiability of G is decided by the input and transient columns.
-    kwargs = {"rank_columns": layout.n_system + layout.n_transient}
-    nb = layout.n_bands
-    if return_cov:
-        kwargs["cov_columns"] = nb
-    if rank_tol is not None:
-        kwargs["rank_tol"] = rank_tol
-
+    options = _ChunkOptions(
+        solver, backend, refine_steps, rank_tol, return_leverage, return_cov
+    )
+    reference = _excitation_reference(
+        _mean_input_energy(U, layout.n_inputs), layout
+    )
     parts = []
     with _single_threaded_blas() if solver == "normal" else contextlib.nullcontext():
         for start in range(0, slow_bins.size, chunk_size):
             bins = slow_bins[start : start + chunk_size]
-            if solver == "normal":
-                parts.append(
-                    solve_local_normal_equations(
-                        U, Y, bins, layout, refine_steps=refine_steps,
-                        backend=backend, **kwargs
-                    )
-                )
-            else:
-                A, b = local_regressor(U, Y, bins, layout)
-                parts.append(
-                    solve_local_least_squares(
-                        A, b, return_leverage=return_leverage, **kwargs
-                    )
-                )
+            parts.append(_fit_chunk(U, Y, bins, layout, reference, options))
+    fit = _joined_fits(parts, slow_bins)
+    return rescale_local_fit(fit, u_exponent, y_exponent)
 
-    theta, gram_inv_diag, rss, well_posed = (
-        _joined([getattr(s, name) for s in parts])
-        for name in ("theta", "gram_inv_diag", "rss", "well_posed")
-    )
+
+@dataclass(frozen=True)
+class _ChunkOptions:
+    """Solver settings shared by the chunks of one fit."""
+
+    solver: str
+    backend: str
+    refine_steps: int
+    rank_tol: float | None
+    return_leverage: bool
+    return_cov: bool
+
+
+def _fit_chunk(U, Y, bins, layout, reference, options: _ChunkOptions):
+    """The closed form and its Lemma 2 results on one chunk of windows.
+
+    ``U`` (P, n_u N') and ``Y`` (P, M') are the spectra the windows ``bins``
+    read (the full DFTs, or the compact ones of :meth:`OneSidedSpectra.
+    window_spectra`); ``reference`` is the mean input energy of
+    :func:`_mean_input_energy` of the full records. Returns a
+    :class:`LocalModelFit` of the chunk (``slow_bins`` as given).
+    """
+    F, nb = layout.F, layout.n_bands
+    # Identifiability of G is decided by the input and transient columns.
+    kwargs = {"rank_columns": layout.n_system + layout.n_transient}
+    if options.return_cov:
+        kwargs["cov_columns"] = nb
+    if options.rank_tol is not None:
+        kwargs["rank_tol"] = options.rank_tol
+    if options.solver == "normal":
+        sol = solve_local_normal_equations(
+            U, Y, bins, layout, refine_steps=options.refine_steps,
+            backend=options.backend, **kwargs
+        )
+    else:
+        A, b = local_regressor(U, Y, bins, layout)
+        sol = solve_local_least_squares(
+            A, b, return_leverage=options.return_leverage, **kwargs
+        )
+        del A, b
+    excited = (_relative_excitation(U, Y.shape[1], bins, layout, reference)
+               > EXCITATION_TOL).all(axis=1)
+    well_posed = sol.well_posed & excited
+    noise_var = noise_variance(sol.rss, layout.dof)
     system_cov = None
-    if return_cov:
-        lead = _joined([s.lead_cov for s in parts])
-        system_cov = F**2 * lead * noise_variance(rss, layout.dof)[:, None, None]
-    excited = (window_excitation(U, slow_bins, layout) > EXCITATION_TOL).all(axis=1)
-    well_posed = well_posed & excited
-    leverage = _joined([s.leverage for s in parts]) if return_leverage else None
-    noise_var = noise_variance(rss, layout.dof)
+    if options.return_cov:
+        system_cov = F**2 * sol.lead_cov * noise_var[:, None, None]
+    theta, rss = sol.theta, sol.rss
     system = F * theta[:, :nb]
-    system_var = lemma2_variance(gram_inv_diag[:, :nb], noise_var, F)
+    system_var = lemma2_variance(sol.gram_inv_diag[:, :nb], noise_var, F)
     transient_cols = [layout.transient_column(p) for p in range(layout.n_experiments)]
     transient = theta[:, transient_cols]
     bad = np.flatnonzero(~well_posed)
@@ -410,9 +449,9 @@ def fit_local_models(
         arr[bad] = np.nan
     if system_cov is not None:
         system_cov[bad] = np.nan
-    fit = LocalModelFit(
+    return LocalModelFit(
         layout=layout,
-        slow_bins=slow_bins,
+        slow_bins=bins,
         theta=theta,
         system=system,
         system_var=system_var,
@@ -421,10 +460,374 @@ def fit_local_models(
         rss=rss,
         well_posed=well_posed,
         excited=excited,
-        leverage=leverage,
+        leverage=sol.leverage if options.return_leverage else None,
         system_cov=system_cov,
     )
-    return rescale_local_fit(fit, u_exponent, y_exponent)
+
+
+def _joined_fits(parts: list[LocalModelFit], slow_bins: np.ndarray) -> LocalModelFit:
+    """One fit from the fits of consecutive chunks (the single chunk itself),
+    filled into arrays allocated once."""
+    if len(parts) == 1:
+        return replace(parts[0], slow_bins=slow_bins)
+    fields = {}
+    B = slow_bins.size
+    for name in _PER_WINDOW_FIELDS:
+        first = getattr(parts[0], name)
+        if first is None:
+            fields[name] = None
+            continue
+        out = np.empty((B,) + first.shape[1:], dtype=first.dtype)
+        start = 0
+        for part in parts:
+            values = getattr(part, name)
+            out[start : start + values.shape[0]] = values
+            start += values.shape[0]
+        fields[name] = out
+    return LocalModelFit(layout=parts[0].layout, slow_bins=slow_bins, **fields)
+
+
+#: The per-window arrays of :class:`LocalModelFit` (all but layout, slow_bins).
+_PER_WINDOW_FIELDS = (
+    "theta", "system", "system_var", "transient", "noise_var", "rss",
+    "well_posed", "excited", "leverage", "system_cov",
+)
+
+
+def _excitation_reference(mean_energy: np.ndarray, layout) -> np.ndarray:
+    """Window energy of a band at its input's average: the denominator of the
+    relative excitation, shape (n_bands,).
+
+    ``mean_energy`` (n_u,) is ``mean_j sum_p |U_{p,i}(j)|^2`` over the ``N``
+    fast bins of each input (:func:`_mean_input_energy`).
+    """
+    return layout.window * np.repeat(mean_energy, layout.F)
+
+
+def _mean_input_energy(U: np.ndarray, n_inputs: int) -> np.ndarray:
+    """``mean_j sum_p |U_{p,i}(j)|^2`` over the fast bins, per input.
+
+    Parameters
+    ----------
+    U : ndarray of shape (P, n_u N), complex
+        Full DFTs, inputs concatenated.
+    n_inputs : int
+
+    Returns
+    -------
+    ndarray of shape (n_u,)
+    """
+    parts = U.reshape(U.shape[0], n_inputs, -1)
+    return np.array([
+        np.sum(parts[:, i].real ** 2 + parts[:, i].imag ** 2) / parts.shape[2]
+        for i in range(n_inputs)
+    ])
+
+
+def _window_energy(U: np.ndarray, n_slow: int, bins: np.ndarray, layout):
+    """``sum_{p,r} |U_{p,i}(k+r+fM)|^2`` per window ``k`` and band ``b = i F +
+    f``, shape (B, n_bands) (``U`` of shape (P, n_u N) with ``N = F n_slow``).
+
+    Consecutive windows that do not wrap around the record (every chunk of
+    :func:`iter_local_fits`) are summed with a sliding window over each
+    band's energy series; others gather each window's bins.
+    """
+    n, L, F = layout.half_window, layout.window, layout.F
+    B = bins.size
+    first = bins[0] - n if B else 0
+    consecutive = (
+        B > 0 and first >= 0 and bins[-1] + n < n_slow
+        and np.array_equal(bins, np.arange(bins[0], bins[0] + B))
+    )
+    out = np.zeros((B, layout.n_bands))
+    if consecutive:
+        N = F * n_slow
+        for b in range(layout.n_bands):
+            lo = (b // F) * N + (b % F) * n_slow + first
+            series = U[:, lo : lo + B + 2 * n]
+            energy = np.sum(series.real**2 + series.imag**2, axis=0)
+            out[:, b] = sliding_window_view(energy, L).sum(axis=1)
+        return out
+    r, _ = window_offsets(n)
+    idx = band_indices(bins[:, None] + r, layout, n_slow)  # (B, L, n_bands)
+    for p in range(U.shape[0]):
+        values = U[p][idx]
+        out += np.sum(values.real**2 + values.imag**2, axis=1)
+    return out
+
+
+@dataclass(frozen=True)
+class OneSidedSpectra:
+    """One-sided DFTs of real records: all the local models read, in half the
+    memory of the full DFTs.
+
+    The DFT of a real record is conjugate-symmetric, ``X(N-j) = conj(X(j))``,
+    so bins ``0..N//2`` (a real FFT) hold it all; the windows read any bin
+    ``j mod N`` through :meth:`window_spectra`. The values are bit for bit
+    those of :func:`dft` (the real FFT returns the same numbers as scipy's
+    complex FFT of a real record, whose upper half is the exact conjugate).
+
+    Attributes
+    ----------
+    inputs : ndarray of shape (P, n_u, N//2+1), complex
+        One-sided DFTs of the fast inputs.
+    outputs : ndarray of shape (P, n_y, M//2+1), complex
+        One-sided DFTs of the slow outputs.
+    n_samples : int
+        ``N``.
+    F : int
+        Downsampling factor, ``M = N / F``.
+    """
+
+    inputs: np.ndarray
+    outputs: np.ndarray
+    n_samples: int
+    F: int
+
+    @classmethod
+    def from_records(cls, u: np.ndarray, y: np.ndarray, F: int) -> OneSidedSpectra:
+        """DFTs of real records ``u`` (P, n_u, N) and ``y`` (P, n_y, N/F).
+
+        Computed with :func:`numpy.fft.rfft`: the same pocketfft algorithm
+        and values as scipy's (checked bit for bit in the tests), but it does
+        not keep the plan of each length cached for the life of the process
+        (about ``8 N`` bytes, 0.09 GiB at ``N = 1.2e7``).
+        """
+        return cls(
+            np.fft.rfft(u, axis=-1), np.fft.rfft(y, axis=-1), u.shape[-1], int(F)
+        )
+
+    @property
+    def n_slow(self) -> int:
+        """``M``."""
+        return self.n_samples // self.F
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held (both spectra)."""
+        return self.inputs.nbytes + self.outputs.nbytes
+
+    def full_inputs(self) -> np.ndarray:
+        """Full input DFTs, inputs concatenated: (P, n_u N), as :func:`dft`."""
+        P, n_u, _ = self.inputs.shape
+        full = _full_spectrum(self.inputs, self.n_samples)
+        return full.reshape(P, n_u * self.n_samples)
+
+    def full_outputs(self, output: int) -> np.ndarray:
+        """Full DFT of one output channel of every experiment: (P, M)."""
+        return _full_spectrum(self.outputs[:, output], self.n_slow)
+
+    def window_spectra(self, start: int, stop: int, half_window: int, output: int):
+        """Compact spectra of the windows centred on slow bins ``start..stop-1``.
+
+        The windows read slow bins ``k+r`` and fast bins ``k+r+fM`` (mod ``N``)
+        for ``|r| <= n``; the compact problem holds exactly those values with
+        a slow length ``M' = stop - start + 2n`` laid out so that the local
+        problem of window ``k`` is that of bin ``k - start + n`` of the compact
+        spectra, read without wrapping (:func:`lrmfrf.windows.band_indices`
+        with ``M'`` and ``N' = F M'``).
+
+        Returns
+        -------
+        U : ndarray of shape (P, n_u F M'), complex
+        Y : ndarray of shape (P, M'), complex
+        bins : ndarray of shape (stop - start,), int
+            The compact window centres ``n .. n + stop - start - 1``.
+        """
+        N, M, F = self.n_samples, self.n_slow, self.F
+        slow = np.arange(start - half_window, stop + half_window)  # (M',)
+        fast = (slow[None, :] + M * np.arange(F)[:, None]) % N  # (F, M')
+        P, n_u, _ = self.inputs.shape
+        U = _periodic_values(self.inputs, fast.ravel(), N).reshape(P, -1)
+        Y = _periodic_values(self.outputs[:, output], slow % M, M)
+        bins = np.arange(stop - start) + half_window
+        return U, Y, bins
+
+
+def _full_spectrum(half: np.ndarray, length: int) -> np.ndarray:
+    """Full DFT (..., length) from its one-sided part (..., length//2+1)."""
+    full = np.empty(half.shape[:-1] + (length,), dtype=complex)
+    h = length // 2 + 1
+    full[..., :h] = half
+    np.conjugate(half[..., 1 : length - h + 1][..., ::-1], out=full[..., h:])
+    return full
+
+
+def _periodic_values(half: np.ndarray, idx: np.ndarray, length: int) -> np.ndarray:
+    """DFT values at bins ``idx`` in ``0..length-1`` from the one-sided part
+    ``half`` (..., length//2+1): ``conj(half[length - j])`` above the middle."""
+    mirrored = idx > length // 2
+    values = half[..., np.where(mirrored, length - idx, idx)]
+    np.conjugate(values, out=values, where=mirrored)
+    return values
+
+
+def _one_sided_mean_energy(half: np.ndarray, length: int) -> np.ndarray:
+    """:func:`_mean_input_energy` from one-sided DFTs (P, n_u, length//2+1)."""
+    P, n_u, h = half.shape
+    mirrored_end = length - h + 1  # bins 1..mirrored_end-1 occur twice
+    total = np.zeros(n_u)
+    block = 2**18
+    for start in range(0, h, block):
+        part = half[:, :, start : start + block]
+        energy = np.sum(part.real**2 + part.imag**2, axis=0)  # (n_u, b)
+        j = np.arange(start, start + part.shape[2])
+        twice = (j >= 1) & (j < mirrored_end)
+        total += energy.sum(axis=1) + energy[:, twice].sum(axis=1)
+    return total / length
+
+
+def iter_local_fits(
+    spectra: OneSidedSpectra,
+    layout: LocalModelLayout,
+    *,
+    output: int = 0,
+    chunk_size: int | None = None,
+    backend: str = "auto",
+    refine_steps: int = 1,
+    return_cov: bool = False,
+):
+    """Closed-form local models of slow bins ``0..M//2``, chunk by chunk.
+
+    The streaming form of :func:`fit_local_models` for real records: each
+    chunk reads compact spectra (:meth:`OneSidedSpectra.window_spectra`), so
+    nothing of the size of the grid is allocated, and the caller keeps only
+    what it needs of each chunk. The results are those of
+    ``fit_local_models(spectra.full_inputs(), spectra.full_outputs(output),
+    layout, solver="normal", ...)`` at the same bins (each window's problem
+    holds the same values; the compiled kernel solves every window alone, so
+    chunking does not change it, and the numpy path uses the same chunks).
+
+    Parameters
+    ----------
+    spectra : OneSidedSpectra
+    layout : LocalModelLayout
+    output : int, default=0
+        Output channel (one local problem per output row).
+    chunk_size : int, optional
+        Windows per chunk; default :func:`default_chunk_size` for the numpy
+        path and :func:`stream_chunk_size` for the compiled kernel.
+    backend : {"auto", "numpy", "numba"}, default="auto"
+        Resolved once for all ``M//2+1`` windows, as in
+        :func:`fit_local_models`.
+    refine_steps : int, default=1
+    return_cov : bool, default=False
+
+    Yields
+    ------
+    start : int
+        First slow bin of the chunk.
+    fit : LocalModelFit
+        The chunk's results, ``slow_bins = start .. start + B_chunk - 1``.
+    """
+    M = spectra.n_slow
+    n_bins = M // 2 + 1
+    backend = resolve_backend(backend, n_bins, layout.n_params)
+    if chunk_size is None:
+        compiled = backend == "numba"
+        chunk_size = stream_chunk_size(layout) if compiled else default_chunk_size(
+            layout, "normal"
+        )
+    chunk_size = max(1, chunk_size)
+    # the exponents normalise_spectra would take on the full DFTs (the same
+    # largest |real| and |imag| parts), applied to each chunk's copy
+    u_exponent = power_of_two_exponent(spectra.inputs)
+    y_exponent = power_of_two_exponent(spectra.outputs[:, output])
+    mean_energy = _one_sided_mean_energy(spectra.inputs, spectra.n_samples)
+    reference = _excitation_reference(
+        scale_by_power_of_two(mean_energy, -2 * u_exponent), layout
+    )
+    options = _ChunkOptions("normal", backend, refine_steps, None, False, return_cov)
+    with _single_threaded_blas():  # left when the generator ends or is closed
+        for start in range(0, n_bins, chunk_size):
+            stop = min(n_bins, start + chunk_size)
+            U, Y, bins = spectra.window_spectra(
+                start, stop, layout.half_window, output
+            )
+            U = scale_by_power_of_two(U, -u_exponent)
+            Y = scale_by_power_of_two(Y, -y_exponent)
+            fit = _fit_chunk(U, Y, bins, layout, reference, options)
+            del U, Y
+            fit = replace(fit, slow_bins=np.arange(start, stop))
+            yield start, rescale_local_fit(fit, u_exponent, y_exponent)
+
+
+def fit_one_sided(
+    spectra: OneSidedSpectra,
+    layout: LocalModelLayout,
+    *,
+    output: int = 0,
+    return_cov: bool = False,
+    **kwargs,
+) -> LocalModelFit:
+    """All chunks of :func:`iter_local_fits` as one :class:`LocalModelFit`.
+
+    Equal to ``fit_local_models(spectra.full_inputs(),
+    spectra.full_outputs(output), layout, return_cov=return_cov)`` without
+    forming the full DFTs. ``kwargs`` go to :func:`iter_local_fits`.
+    """
+    parts = [
+        fit for _, fit in iter_local_fits(
+            spectra, layout, output=output, return_cov=return_cov, **kwargs
+        )
+    ]
+    return _joined_fits(parts, half_slow_bins(spectra.n_slow))
+
+
+def stream_chunk_size(layout: LocalModelLayout) -> int:
+    """Windows per chunk of :func:`iter_local_fits` with the compiled kernel.
+
+    Bounds a chunk's arrays (compact spectra, parameters, Lemma 2 blocks,
+    window energies and the caller's per-chunk copies) to about
+    ``CHUNK_BYTES / 2``: the kernel solves each window alone, so the chunk
+    only sets how much is held at once.
+    """
+    p, nb, P = layout.n_params, layout.n_bands, layout.n_experiments
+    n_centre = nb + P
+    per_window = 8 * (
+        4 * p  # theta (complex) and the Lemma 2 diagonal, twice
+        + 2 * n_centre**2 + 6 * nb * nb  # centre block, lead and system_cov
+        + 8 * nb + 4 * P  # band values, variances, transients
+        + 3 * layout.window * nb  # window energies (values and indices)
+    )
+    return max(1024, CHUNK_BYTES // 2 // per_window)
+
+
+def fast_grid_targets(start: int, stop: int, n_samples: int, F: int):
+    """Fast bins ``0..N//2`` that :func:`one_sided_fast_grid` fills from the
+    slow bins ``start..stop-1``.
+
+    Fast bin ``j`` takes ``values[k, f]`` (``j = k + fM``) or, mirrored,
+    ``conj(values[k, f])`` with ``N - j = k + fM``; each ``j`` has exactly
+    one source.
+
+    Returns
+    -------
+    fast : ndarray of shape (T,), int
+        The fast bins ``j``.
+    slow : ndarray of shape (T,), int
+        Their source slow bin relative to ``start`` (``k - start``).
+    band : ndarray of shape (T,), int
+        The source band ``f``.
+    mirrored : ndarray of shape (T,), bool
+        Whether the value is conjugated.
+    """
+    M = n_samples // F
+    half = n_samples // 2
+    k = np.arange(start, stop)
+    f = np.arange(F)[:, None]
+    direct = k + f * M  # values[k, f] at j = k + fM
+    mirror = n_samples - direct  # mirrored: j % M = M - k > M//2
+    mirror_ok = (k > 0) & (M - k > M // 2) & (mirror <= half)
+    direct_ok = direct <= half
+    kk = np.broadcast_to(k - start, direct.shape)
+    ff = np.broadcast_to(f, direct.shape)
+    fast = np.concatenate([direct[direct_ok], mirror[mirror_ok]])
+    slow = np.concatenate([kk[direct_ok], kk[mirror_ok]])
+    band = np.concatenate([ff[direct_ok], ff[mirror_ok]])
+    mirrored = np.zeros(fast.size, dtype=bool)
+    mirrored[np.count_nonzero(direct_ok):] = True
+    return fast, slow, band, mirrored
 
 
 def default_chunk_size(layout: LocalModelLayout, solver: str = "qr") -> int:
@@ -436,11 +839,6 @@ def default_chunk_size(layout: LocalModelLayout, solver: str = "qr") -> int:
         3 * p * p + 6 * L * (layout.n_bands + 2) * layout.n_experiments
     )
     return max(1, CHUNK_BYTES // per_window)
-
-
-def _joined(parts: list[np.ndarray]) -> np.ndarray:
-    """Concatenate per-chunk results (no copy for a single chunk)."""
-    return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
 def _check_solver(solver: str, return_leverage: bool) -> str:

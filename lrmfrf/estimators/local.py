@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import warnings
+from dataclasses import dataclass
 from functools import partial
 
 import numpy as np
@@ -23,13 +24,16 @@ from .._validation import (
 )
 from ..exceptions import IdentifiabilityWarning
 from ..local_models import (
-    dft,
+    OneSidedSpectra,
+    fast_grid_targets,
     fit_local_models,
-    one_sided_fast_grid,
+    fit_one_sided,
+    iter_local_fits,
     rescale_local_fit,
     scale_by_power_of_two,
 )
 from ..refinement import refine_local_models
+from ..solvers import resolve_backend
 from ..windows import LocalModelLayout
 from ._base import _BaseFRFEstimator, _normalise_in_place
 
@@ -49,6 +53,13 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         the estimator names them in messages (None: not a parameter)."""
         raise NotImplementedError
 
+    def _refines(self, params: dict) -> bool:
+        """Whether ``fit`` refines the closed form (:meth:`_refine`)."""
+        return False
+
+    def _reset_refinement(self) -> None:
+        """Hook: the fitted attributes of refinement, before any is run."""
+
     def _refine(self, U, Y, layout, local_fit, params: dict, y_exponent: int):
         """Hook for iterative refinement; the closed form by default.
 
@@ -56,6 +67,33 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         stored on the estimator are scaled back by ``2**(2*y_exponent)``.
         """
         return local_fit
+
+    @property
+    def local_fit_(self):
+        """Per-slow-bin results (see the class docstring).
+
+        A closed-form fit stores only what computes them
+        (``_local_fit_source_``: the one-sided DFTs of the normalised records,
+        the layout, the normalisation exponents and the backend of the fit);
+        the first access runs :func:`lrmfrf.local_models.fit_one_sided` per
+        output row, which gives the results of the fit bit for bit, keeps
+        them and releases the spectra.
+        """
+        fit = self.__dict__.get("_local_fit_cache_")
+        if fit is None:
+            source = self.__dict__.get("_local_fit_source_")
+            if source is None:
+                raise AttributeError(
+                    f"{type(self).__name__!r} object has no attribute 'local_fit_' "
+                    "(call fit first)"
+                )
+            fit = source.compute()
+            self._local_fit_cache_, self._local_fit_source_ = fit, None
+        return fit
+
+    @local_fit_.setter
+    def local_fit_(self, value) -> None:
+        self._local_fit_cache_, self._local_fit_source_ = value, None
 
     def fit(self, u_h, y_l, F, *, sample_time: float = 1.0):
         """Estimate the fast-rate FRF from a fast input and a slow output.
@@ -139,38 +177,77 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         u, y = records.u, records.y  # new arrays: check_records copies
         u_exponent = _normalise_in_place(u)
         y_exponent = _normalise_in_place(y)
-        U = dft(u).reshape(P, n_u * N)  # inputs concatenated: the F n_u bands
-        Y = dft(y)
+        # real records: one-sided DFTs (half the memory, the same values)
+        spectra = OneSidedSpectra.from_records(u, y, F)
         del u, y, records
-        fits = []
-        for o in range(n_y):  # one local problem (one denominator) per output row
-            Y_o = Y[:, o, :]
-            local_fit = fit_local_models(U, Y_o, layout, return_cov=True)
-            fits.append(self._refine(U, Y_o, layout, local_fit, params, y_exponent))
-        self._set_fitted(
-            fits, layout, N, M, F, P, sample_time, u_exponent, y_exponent
-        )
+        backend = resolve_backend("auto", M // 2 + 1, layout.n_params)
+        self._reset_refinement()
+        if self._refines(params):
+            U = spectra.full_inputs()  # (P, n_u N): the F n_u bands
+            fits = []
+            for o in range(n_y):  # one local problem (one denominator) per row
+                Y_o = spectra.full_outputs(o)
+                local_fit = fit_local_models(
+                    U, Y_o, layout, return_cov=True, backend=backend
+                )
+                fits.append(
+                    self._refine(U, Y_o, layout, local_fit, params, y_exponent)
+                )
+            del U
+            rows = [[(0, fit)] for fit in fits]
+        else:  # streamed: no per-window parameters are kept
+            rows = [
+                iter_local_fits(
+                    spectra, layout, output=o, return_cov=True, backend=backend
+                ) for o in range(n_y)
+            ]
+        self._set_fitted(rows, layout, N, M, F, P, sample_time, u_exponent,
+                         y_exponent)
+        if self._refines(params):
+            fits = [rescale_local_fit(fit, u_exponent, y_exponent) for fit in fits]
+            self.local_fit_ = fits[0] if n_u == n_y == 1 else fits
+        else:
+            self._local_fit_cache_ = None
+            self._local_fit_source_ = _LocalFitSource(
+                spectra, layout, u_exponent, y_exponent, backend
+            )
         return self
 
     def _set_fitted(
-        self, fits, layout, N, M, F, P, sample_time, u_exponent, y_exponent
+        self, rows, layout, N, M, F, P, sample_time, u_exponent, y_exponent
     ) -> None:
-        n_u, n_y = layout.n_inputs, len(fits)
+        """Set the fitted attributes from the local fits of each output row.
+
+        ``rows[o]`` yields ``(start, fit)``: the (normalised) results of slow
+        bins ``start..`` of output row ``o`` (all of them at once, or chunk
+        by chunk from :func:`lrmfrf.local_models.iter_local_fits`); they are
+        written into the outputs, allocated once, and not kept.
+        """
+        n_u, n_y = layout.n_inputs, len(rows)
         siso = n_u == 1 and n_y == 1
-        well_posed = np.stack([fit.well_posed for fit in fits])  # (n_y, B)
-        valid = np.stack([
-            one_sided_fast_grid(
-                np.repeat(wp[:, None], F, axis=1), N, F, conj=False
-            ) for wp in well_posed
-        ])  # (n_y, K)
-        n_bad = int(np.count_nonzero(~well_posed))
+        K, B = N // 2 + 1, M // 2 + 1
+        self.frequencies_ = np.arange(K, dtype=float)
+        self.frequencies_ /= N * sample_time
+        out = _FittedArrays(
+            frf=np.empty((n_y, n_u, K), dtype=complex),
+            std=np.empty((n_y, n_u, K)),
+            cov=np.empty((n_y, n_u, n_u, K), dtype=complex),
+            valid=np.empty((n_y, n_u, K), dtype=bool),
+            noise=np.empty((n_y, B)),
+            transient=np.empty((P, n_y, B), dtype=complex),
+        )
+        n_bad = n_unexcited = 0
+        for o, chunks in enumerate(rows):
+            for start, fit in chunks:
+                n_bad += int(np.count_nonzero(~fit.well_posed))
+                n_unexcited += int(np.count_nonzero(~fit.excited))
+                out.write(o, start, fit, N, F, u_exponent, y_exponent)
         if n_bad:
-            n_unexcited = int(sum(np.count_nonzero(~fit.excited) for fit in fits))
-            rows = " (over all output rows)" if n_y > 1 else ""
+            rows_note = " (over all output rows)" if n_y > 1 else ""
             msg = (
-                f"{n_bad} of {well_posed.size} slow bins{rows} "
-                f"({np.count_nonzero(~valid)} of {valid.size} fast bins of frf_) "
-                "are not identifiable: their local problem is rank-deficient "
+                f"{n_bad} of {n_y * B} slow bins{rows_note} "
+                f"({np.count_nonzero(~out.valid[:, 0])} of {n_y * K} fast bins of "
+                "frf_) are not identifiable: their local problem is rank-deficient "
                 f"({n_unexcited} of them because the input has no energy in some "
                 "aliased band of the window). Their FRF is NaN and valid_ is "
                 "False. Use an input that excites every band, e.g. a random-phase "
@@ -194,45 +271,19 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         self.n_params_ = layout.n_params
         self.dof_ = layout.dof
         self.layout_ = layout
-        self.frequencies_ = np.arange(N // 2 + 1) / (N * sample_time)
-        system_exponent = y_exponent - u_exponent
-        K = N // 2 + 1
-        frf = np.empty((n_y, n_u, K), dtype=complex)
-        std = np.empty((n_y, n_u, K))
-        cov = np.empty((n_y, n_u, n_u, K), dtype=complex)
-        for o, fit in enumerate(fits):
-            for i in range(n_u):
-                bands = slice(i * F, (i + 1) * F)
-                frf[o, i] = one_sided_fast_grid(fit.system[:, bands], N, F, conj=True)
-                # std from the normalised variance: its square may leave the
-                # float range
-                std[o, i] = np.sqrt(
-                    one_sided_fast_grid(fit.system_var[:, bands], N, F, conj=False)
-                )
-                for j in range(n_u):
-                    block = fit.system_cov[:, bands, j * F : (j + 1) * F]
-                    cov[o, i, j] = one_sided_fast_grid(
-                        np.diagonal(block, axis1=1, axis2=2), N, F, conj=True
-                    )
-        frf = scale_by_power_of_two(frf, system_exponent)
-        std = scale_by_power_of_two(std, system_exponent)
-        self.frf_cov_ = scale_by_power_of_two(cov, 2 * system_exponent)
-        fits = [rescale_local_fit(fit, u_exponent, y_exponent) for fit in fits]
-        valid = np.broadcast_to(valid[:, None, :], (n_y, n_u, K))
-        self.frf_ = frf[0, 0] if siso else frf
-        self.frf_std_ = std[0, 0] if siso else std
-        self.valid_ = valid[0, 0].copy() if siso else valid.copy()
-        self.slow_frequencies_ = fits[0].slow_bins / (N * sample_time)
-        noise = np.stack([fit.noise_var for fit in fits])
-        transient = np.stack([fit.transient.T for fit in fits], axis=1)  # (P, n_y, B)
+        self.frf_cov_ = out.cov
+        self.frf_ = out.frf[0, 0] if siso else out.frf
+        self.frf_std_ = out.std[0, 0] if siso else out.std
+        self.valid_ = out.valid[0, 0] if siso else out.valid
+        self.slow_frequencies_ = np.arange(B) / (N * sample_time)
         if siso:
-            self.noise_variance_ = noise[0]
-            self.transient_ = transient[0, 0] if P == 1 else transient[:, 0]
-            self.local_fit_ = fits[0]
+            self.noise_variance_ = out.noise[0]
+            self.transient_ = (
+                out.transient[0, 0] if P == 1 else out.transient[:, 0]
+            )
         else:
-            self.noise_variance_ = noise
-            self.transient_ = transient
-            self.local_fit_ = fits
+            self.noise_variance_ = out.noise
+            self.transient_ = out.transient
         logger.debug(
             "%s fitted: N=%d, F=%d, P=%d, n_u=%d, n_y=%d, %d params, %d dof, %d "
             "invalid bins", type(self).__name__, N, F, P, n_u, n_y,
@@ -339,7 +390,13 @@ class LRMBeyondNyquist(_LocalModelEstimator):
     local_fit_ : lrmfrf.local_models.LocalModelFit or list of them
         Per-slow-bin results (parameters, band values, variances); a list of
         ``n_y`` fits, one per output row, when not SISO (band ``b = i F + f``
-        is input ``i``, see :func:`lrmfrf.windows.band_indices`).
+        is input ``i``, see :func:`lrmfrf.windows.band_indices`). For the
+        closed form it is computed on first access (the same closed form
+        again, from the one-sided DFTs of the training records that the
+        estimator keeps until then, about the size of the records) and then
+        kept: ``fit`` streams the windows into the other attributes without
+        holding the ``(M//2+1, n_params_)`` parameters (0.86 GiB at ``N =
+        1.2e7``). After refinement it is the refined fit, kept from ``fit``.
     cost_history_ : ndarray of shape (1 + n_sk_iter_ + n_lm_iter_,) or None
         Mean over the slow bins of the original least-squares cost
         (eq. meanCosts, ``mu_OE``) after the closed form and after each SK,
@@ -437,12 +494,15 @@ class LRMBeyondNyquist(_LocalModelEstimator):
         }
         return degrees, {}
 
-    def _refine(self, U, Y, layout, local_fit, params: dict, y_exponent: int):
-        sk, lm = params["sk_iterations"], params["lm_iterations"]
+    def _refines(self, params: dict) -> bool:
+        return bool(params["sk_iterations"] or params["lm_iterations"])
+
+    def _reset_refinement(self) -> None:
         self.n_sk_iter_ = self.n_lm_iter_ = self.n_guarded_ = 0
         self.cost_history_ = self.sk_cost_history_ = None
-        if not (sk or lm):
-            return local_fit
+
+    def _refine(self, U, Y, layout, local_fit, params: dict, y_exponent: int):
+        sk, lm = params["sk_iterations"], params["lm_iterations"]
         result = refine_local_models(  # warns at the caller of fit
             U, Y, layout, local_fit, sk_iterations=sk, lm_iterations=lm,
             tol=params["tol"], guard=params["guard"], jump=params["jump"],
@@ -571,3 +631,84 @@ class LPMBeyondNyquist(_LocalModelEstimator):
             "den_degree": 0,
         }
         return degrees, names
+
+
+@dataclass
+class _FittedArrays:
+    """The fitted arrays of a local-model estimator, filled chunk by chunk."""
+
+    frf: np.ndarray  # (n_y, n_u, K), complex
+    std: np.ndarray  # (n_y, n_u, K)
+    cov: np.ndarray  # (n_y, n_u, n_u, K), complex
+    valid: np.ndarray  # (n_y, n_u, K), bool
+    noise: np.ndarray  # (n_y, B)
+    transient: np.ndarray  # (P, n_y, B), complex
+
+    def write(self, o, start, fit, N, F, u_exponent, y_exponent) -> None:
+        """Write the results of slow bins ``start..`` of output row ``o``.
+
+        The fast bins are those :func:`lrmfrf.local_models.one_sided_fast_grid`
+        maps from these slow bins (:func:`lrmfrf.local_models.
+        fast_grid_targets`); values are scaled back by the records'
+        normalisation exponents as the whole arrays used to be.
+        """
+        stop = start + fit.slow_bins.size
+        system_exponent = y_exponent - u_exponent
+        fast, slow, band, mirrored = fast_grid_targets(start, stop, N, F)
+        n_u = self.frf.shape[1]
+        for i in range(n_u):
+            b = i * F + band
+            self.frf[o, i, fast] = scale_by_power_of_two(
+                _conj_where(fit.system[slow, b], mirrored), system_exponent
+            )
+            # std from the normalised variance: its square may leave the
+            # float range
+            self.std[o, i, fast] = scale_by_power_of_two(
+                np.sqrt(fit.system_var[slow, b]), system_exponent
+            )
+            for j in range(n_u):
+                self.cov[o, i, j, fast] = scale_by_power_of_two(
+                    _conj_where(fit.system_cov[slow, b, j * F + band], mirrored),
+                    2 * system_exponent,
+                )
+            self.valid[o, i, fast] = fit.well_posed[slow]
+        self.noise[o, start:stop] = scale_by_power_of_two(
+            fit.noise_var, 2 * y_exponent
+        )
+        self.transient[:, o, start:stop] = scale_by_power_of_two(
+            fit.transient.T, y_exponent
+        )
+
+
+def _conj_where(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``values`` (a new array) conjugated where ``mask``."""
+    return np.where(mask, np.conj(values), values)
+
+
+@dataclass
+class _LocalFitSource:
+    """What ``local_fit_`` of a closed-form fit is computed from on first
+    access: the one-sided spectra of the normalised training records (about
+    the size of the records), the layout, the normalisation exponents and the
+    backend of the fit."""
+
+    spectra: OneSidedSpectra
+    layout: object
+    u_exponent: int
+    y_exponent: int
+    backend: str
+
+    def compute(self):
+        """The fit's ``local_fit_``: a LocalModelFit, or a list per output row."""
+        n_y = self.spectra.outputs.shape[1]
+        fits = [
+            rescale_local_fit(
+                fit_one_sided(
+                    self.spectra, self.layout, output=o, return_cov=True,
+                    backend=self.backend,
+                ),
+                self.u_exponent, self.y_exponent,
+            )
+            for o in range(n_y)
+        ]
+        return fits[0] if n_y == 1 and self.layout.n_inputs == 1 else fits

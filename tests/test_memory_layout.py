@@ -1,0 +1,278 @@
+"""The streamed closed form (issue 14 item 3) gives the eager computation's results.
+
+The estimators fit the closed form from one-sided DFTs, chunk by chunk, write
+each chunk into the outputs and compute ``local_fit_`` on first access. The
+reference here is the previous eager computation written out in the test:
+``fit_local_models`` on the full DFTs of all windows at once, then the
+one-sided fast grid of the band values. Tolerance: bit for bit where the same
+floating-point operations are done (they are: the windows read the same
+values and the kernels solve each window alone), checked as 1e-12 relative so
+that a harmless change of summation order in a kernel does not fail it.
+"""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+from conftest import simulate_resonant
+
+from lrmfrf import LPMBeyondNyquist, LRMBeyondNyquist, _compiled
+from lrmfrf.local_models import (
+    OneSidedSpectra,
+    dft,
+    fast_grid_targets,
+    fit_local_models,
+    fit_one_sided,
+    one_sided_fast_grid,
+    rescale_local_fit,
+    scale_by_power_of_two,
+    stream_chunk_size,
+)
+from lrmfrf.refinement import refine_local_models
+from lrmfrf.signals import multisine
+from lrmfrf.windows import LocalModelLayout, local_regressor
+
+RTOL = 1e-12
+FIT_FIELDS = ("theta", "system", "system_var", "transient", "noise_var", "rss",
+              "system_cov")
+
+
+def assert_close(actual, desired, name=""):
+    """Equal to RTOL of the largest magnitude, NaN where the reference is."""
+    actual, desired = np.asarray(actual), np.asarray(desired)
+    assert actual.shape == desired.shape, name
+    if desired.dtype == bool:
+        np.testing.assert_array_equal(actual, desired, err_msg=name)
+        return
+    np.testing.assert_array_equal(np.isnan(actual), np.isnan(desired), err_msg=name)
+    scale = np.nanmax(np.abs(desired)) if np.isfinite(desired).any() else 1.0
+    np.testing.assert_allclose(actual, desired, rtol=0, atol=RTOL * scale,
+                               equal_nan=True, err_msg=name)
+
+
+def assert_same_fit(fit, reference):
+    for name in FIT_FIELDS + ("well_posed", "excited", "slow_bins"):
+        assert_close(getattr(fit, name), getattr(reference, name), name)
+
+
+def siso_data(n_samples=1200, P=1, seed=0):
+    rng = np.random.default_rng(seed)
+    u = np.stack([multisine(n_samples, rng=rng) for _ in range(P)])
+    y = simulate_resonant(u, 3, 1e-3, rng)
+    return (u[0], y[0]) if P == 1 else (u[:, None], y[:, None])
+
+
+def mimo_data(n_samples=1500, seed=1):
+    """Two experiments, two inputs, two outputs: u (2, 2, N), y (2, 2, N/3)."""
+    rng = np.random.default_rng(seed)
+    u = rng.standard_normal((2, 2, n_samples))
+    y = np.stack([
+        simulate_resonant(u[:, 0], 3, 0.0, rng) + 0.5 * simulate_resonant(
+            u[:, 1], 3, 1e-3, rng),
+        -0.3 * simulate_resonant(u[:, 0], 3, 1e-3, rng) + simulate_resonant(
+            u[:, 1], 3, 0.0, rng),
+    ], axis=1)
+    return u, y
+
+
+def eager_reference(est, u, y, F=3):
+    """The previous eager computation: all windows at once on the full DFTs,
+    then the fast grid, for records (P, n_u, N) and (P, n_y, M)."""
+    u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
+    if u.ndim == 1:
+        u, y = u[None, None], y[None, None]
+    P, n_u, N = u.shape
+    layout = est.layout_
+    U = dft(u).reshape(P, n_u * N)
+    fits = [fit_local_models(U, dft(y[:, o]), layout, return_cov=True)
+            for o in range(y.shape[1])]
+    frf = np.array([[one_sided_fast_grid(fit.system[:, i * F:(i + 1) * F], N, F,
+                                         conj=True) for i in range(n_u)]
+                    for fit in fits])
+    std = np.sqrt(np.array([[one_sided_fast_grid(
+        fit.system_var[:, i * F:(i + 1) * F], N, F, conj=False) for i in range(n_u)]
+        for fit in fits]))
+    cov = np.array([[[one_sided_fast_grid(np.diagonal(
+        fit.system_cov[:, i * F:(i + 1) * F, j * F:(j + 1) * F], axis1=1, axis2=2),
+        N, F, conj=True) for j in range(n_u)] for i in range(n_u)] for fit in fits])
+    valid = np.array([one_sided_fast_grid(
+        np.repeat(fit.well_posed[:, None], F, axis=1), N, F, conj=False)
+        for fit in fits])
+    return fits, frf, std, cov, valid
+
+
+def check_against_eager(est, u, y):
+    fits, frf, std, cov, valid = eager_reference(est, u, y)
+    siso = len(fits) == 1 and frf.shape[1] == 1
+    assert_close(est.frf_, frf[0, 0] if siso else frf, "frf_")
+    assert_close(est.frf_std_, std[0, 0] if siso else std, "frf_std_")
+    assert_close(est.frf_cov_, cov, "frf_cov_")
+    valid = np.broadcast_to(valid[:, None], frf.shape)
+    assert_close(est.valid_, valid[0, 0] if siso else valid, "valid_")
+    noise = np.array([fit.noise_var for fit in fits])
+    assert_close(est.noise_variance_, noise[0] if siso else noise, "noise")
+    transient = np.stack([fit.transient.T for fit in fits], axis=1)  # (P, n_y, B)
+    if siso:
+        transient = transient[0, 0] if transient.shape[0] == 1 else transient[:, 0]
+    assert_close(est.transient_, transient, "transient_")
+    local = [est.local_fit_] if siso else est.local_fit_
+    assert len(local) == len(fits)
+    for fit, reference in zip(local, fits, strict=True):
+        assert_same_fit(fit, reference)
+
+
+# --- the pieces ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("N", [1200, 1203, 1206])
+def test_one_sided_spectra_are_the_dft(N):
+    """rfft halves are the full DFT bit for bit (its upper half is the exact
+    conjugate), and a chunk's compact spectra pose the same window problems."""
+    rng = np.random.default_rng(N)
+    u, y = rng.standard_normal((2, 2, N)), rng.standard_normal((2, 3, N // 3))
+    spectra = OneSidedSpectra.from_records(u, y, 3)
+    U = dft(u).reshape(2, -1)
+    np.testing.assert_array_equal(spectra.full_inputs(), U)
+    np.testing.assert_array_equal(spectra.full_outputs(2), dft(y[:, 2]))
+    layout = LocalModelLayout(F=3, half_window=5, num_degree=1, transient_degree=1,
+                              den_degree=2, n_experiments=2, n_inputs=2)
+    M = N // 3
+    for start, stop in [(0, 7), (3, 40), (M // 2 - 4, M // 2 + 1)]:
+        U_c, Y_c, bins = spectra.window_spectra(start, stop, 5, output=1)
+        A, b = local_regressor(U, dft(y[:, 1]), np.arange(start, stop), layout)
+        A_c, b_c = local_regressor(U_c, Y_c, bins, layout)
+        np.testing.assert_array_equal(A_c, A)
+        np.testing.assert_array_equal(b_c, b)
+
+
+@pytest.mark.parametrize("N, F", [(60, 3), (63, 3), (66, 3), (64, 4), (61, 1),
+                                  (70, 5), (75, 5), (12, 2)])
+def test_fast_grid_targets_fill_the_grid_once(N, F):
+    """Chunk by chunk, the targets give one_sided_fast_grid, each bin once."""
+    M = N // F
+    rng = np.random.default_rng(N + F)
+    values = rng.standard_normal((M // 2 + 1, F)) + 1j * rng.standard_normal(
+        (M // 2 + 1, F))
+    expected = one_sided_fast_grid(values, N, F, conj=True)
+    for chunk in (1, 3, M):
+        out = np.full(N // 2 + 1, np.nan, dtype=complex)
+        hits = np.zeros(N // 2 + 1, dtype=int)
+        for start in range(0, M // 2 + 1, chunk):
+            stop = min(M // 2 + 1, start + chunk)
+            fast, slow, band, mirrored = fast_grid_targets(start, stop, N, F)
+            v = values[start:stop][slow, band]
+            out[fast] = np.where(mirrored, np.conj(v), v)
+            np.add.at(hits, fast, 1)
+        np.testing.assert_array_equal(out, expected)
+        assert (hits == 1).all()
+
+
+BACKENDS = ["numpy", pytest.param("numba", marks=pytest.mark.skipif(
+    not _compiled.AVAILABLE, reason="numba not installed"))]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("mimo", [False, True], ids=["siso", "mimo"])
+def test_streamed_chunks_equal_fit_local_models(backend, mimo):
+    """fit_one_sided in small chunks = fit_local_models on the full DFTs."""
+    if mimo:
+        u, y = mimo_data(3 * 2 * 1400 if backend == "numba" else 1500)
+        layout = LocalModelLayout(F=3, half_window=20, num_degree=4,
+                                  transient_degree=4, den_degree=7,
+                                  n_experiments=2, n_inputs=2)
+    else:
+        u, y = siso_data(3 * 2 * 9000 if backend == "numba" else 1200)
+        u, y = u[None, None], y[None, None]
+        layout = LocalModelLayout(F=3, half_window=18, num_degree=4,
+                                  transient_degree=4, den_degree=7)
+    spectra = OneSidedSpectra.from_records(u, y, 3)
+    output = y.shape[1] - 1
+    reference = fit_local_models(spectra.full_inputs(), spectra.full_outputs(output),
+                                 layout, return_cov=True, backend=backend,
+                                 chunk_size=None if backend == "numba" else 37)
+    streamed = fit_one_sided(spectra, layout, output=output, return_cov=True,
+                             backend=backend,
+                             chunk_size=1000 if backend == "numba" else 37)
+    assert_same_fit(streamed, reference)
+
+
+# --- the estimators ----------------------------------------------------------------
+
+
+@pytest.mark.parametrize("Est", [LRMBeyondNyquist, LPMBeyondNyquist])
+@pytest.mark.parametrize("case", ["siso", "siso P=2", "mimo", "scaled", "long"])
+def test_fitted_attributes_equal_the_eager_computation(Est, case):
+    """SISO, two experiments, 2x2 MIMO, records scaled far from 1, and a record
+    long enough for the compiled kernel in several chunks (``long``)."""
+    if case == "mimo":
+        u, y = mimo_data()
+        est = Est(half_window=20).fit(u, y, 3)
+    elif case == "long":
+        if not _compiled.AVAILABLE:
+            pytest.skip("numba not installed")
+        u, y = siso_data(3 * 2 * 9000)
+        est = Est().fit(u, y, 3)
+        assert stream_chunk_size(est.layout_) < y.size // 2 + 1  # several chunks
+    else:
+        u, y = siso_data(P=2 if case == "siso P=2" else 1)
+        if case == "scaled":  # normalised by powers of two inside fit
+            u, y = u * 2.0**-90, y * 2.0**100
+        est = Est().fit(u, y, 3)
+    check_against_eager(est, u, y)
+
+
+def test_several_chunks_write_the_same_outputs(monkeypatch):
+    """Outputs written chunk by chunk (7 windows each) = the eager computation
+    with the same chunks (the numpy kernel's round-off follows its batch)."""
+    import lrmfrf.local_models as local_models
+
+    u, y = siso_data()
+    monkeypatch.setattr(local_models, "default_chunk_size", lambda *a, **k: 7)
+    est = LRMBeyondNyquist().fit(u, y, 3)
+    check_against_eager(est, u, y)
+
+
+def test_local_fit_is_computed_on_first_access():
+    """A closed-form fit keeps no per-window parameters: local_fit_ comes from
+    the stored one-sided spectra on first access, then stays (and survives
+    pickling and a refit)."""
+    u, y = siso_data()
+    est = LRMBeyondNyquist().fit(u, y, 3)
+    B, p = est.slow_frequencies_.size, est.n_params_
+    held = [v for v in vars(est).values() if isinstance(v, np.ndarray)]
+    assert all(B * p > v.size for v in held)
+    source = est._local_fit_source_
+    assert est._local_fit_cache_ is None
+    assert source.spectra.nbytes == 16 * (u.size // 2 + 1 + y.size // 2 + 1)
+    copy = pickle.loads(pickle.dumps(est))
+    fit = est.local_fit_
+    assert fit.theta.shape == (B, p)
+    assert est.local_fit_ is fit and est._local_fit_source_ is None
+    assert_same_fit(copy.local_fit_, fit)
+    est.fit(u[::-1].copy(), y[::-1].copy(), 3)
+    assert est.local_fit_ is not fit
+    assert not hasattr(LRMBeyondNyquist(), "local_fit_")
+
+
+@pytest.mark.filterwarnings("ignore:Sanathanan-Koerner used all")
+def test_refinement_runs_from_the_new_representation():
+    """sk_iterations > 0: the closed form on the full DFTs, refined, gives the
+    fitted attributes; local_fit_ is the refined fit, kept from the fit."""
+    u, y = siso_data()
+    est = LRMBeyondNyquist(sk_iterations=3).fit(u, y, 3)
+    assert est.n_sk_iter_ >= 1 and est._local_fit_source_ is None
+    U, Y = dft(u)[None], dft(y)[None]
+    closed = fit_local_models(U, Y, est.layout_, return_cov=True)
+    refined = refine_local_models(
+        U, Y, est.layout_, closed, sk_iterations=3, lm_iterations=0, tol=1e-6,
+        guard=0.5, jump=5.0, keep_best=True, chunk_size=None, verbose=False,
+    ).local_fit
+    assert_same_fit(est.local_fit_, refined)
+    assert_close(est.frf_, one_sided_fast_grid(refined.system, u.size, 3, conj=True))
+    assert_close(est.noise_variance_, refined.noise_var)
+    # and from records far from unit scale
+    big = LRMBeyondNyquist(sk_iterations=3).fit(u, y * 2.0**120, 3)
+    assert_close(big.frf_, scale_by_power_of_two(est.frf_, 120))
+    assert_same_fit(big.local_fit_, rescale_local_fit(est.local_fit_, 0, 120))
