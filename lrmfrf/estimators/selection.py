@@ -88,6 +88,7 @@ from ..local_models import (
 from ..progress import progress
 from ..solvers import CHUNK_BYTES, solve_local_least_squares
 from ..windows import LocalModelLayout, local_regressor
+from . import _bands
 from ._base import _BaseFRFEstimator
 from .local import LPMBeyondNyquist, LRMBeyondNyquist
 
@@ -206,6 +207,17 @@ def _combine(per_bin, well_posed, layout, criterion, n_slow) -> float:
     return mean
 
 
+def _combine_mask(per_bin, well_posed, *, layout, criterion, n_slow) -> float:
+    """:func:`_combine` on the windows of ``well_posed`` only."""
+    return _combine(per_bin, well_posed, layout, criterion, n_slow)
+
+
+def _auto_band_count(n_half: int, half_windows) -> int:
+    """Default number of regions: each about two of the largest windows wide
+    (at least 1, at most 8)."""
+    return int(np.clip(round(n_half / (2 * max(half_windows) + 1)), 1, 8))
+
+
 def _local_criteria(U, Y, layout, *, chunk_size=None):
     """Per-window ingredients of the criteria, the well-posed mask, band FRFs.
 
@@ -231,7 +243,12 @@ def _local_criteria(U, Y, layout, *, chunk_size=None):
         bins = slow_bins[start : start + chunk_size]
         chunk = slice(start, start + bins.size)
         A, b = local_regressor(U, Y, bins, layout)
-        sol = solve_local_least_squares(A, b, return_leverage=True)
+        # As fit_local_models: only the input and transient columns decide
+        # identifiability (a rank-deficient denominator leaves G unique).
+        sol = solve_local_least_squares(
+            A, b, return_leverage=True,
+            rank_columns=layout.n_system + layout.n_transient,
+        )
         well_posed[chunk] = sol.well_posed
         system[chunk] = layout.F * sol.theta[:, : layout.F]
         theta = np.where(sol.well_posed[:, None], sol.theta, 0.0)
@@ -292,6 +309,29 @@ def _check_criterion(value, name: str) -> str:
             f"`{name}` must be one of {CRITERIA}. Got {value!r} instead."
         )
     return value
+
+
+def _check_bands(value, name: str):
+    """``None``, a number of regions >= 1, or a sequence of edge frequencies."""
+    if value is None:
+        return None
+    if isinstance(value, numbers.Integral) and not isinstance(value, bool):
+        return check_nonnegative_int(value, name, minimum=1)
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__iter__"):
+        raise TypeError(
+            f"`{name}` must be None, a number of regions or a sequence of edge "
+            f"frequencies. Got {value!r} instead. Pass e.g. {name}=3."
+        )
+    try:
+        edges = tuple(float(v) for v in value)
+    except (TypeError, ValueError) as exc:
+        raise TypeError(
+            f"`{name}` edges must be numbers (slow frequencies). Got {value!r} "
+            "instead."
+        ) from exc
+    if not edges:
+        raise ValueError(f"`{name}` has no edges. Pass None or e.g. {name}=3.")
+    return edges
 
 
 def _check_n_jobs(value, name: str) -> int | None:
@@ -458,7 +498,50 @@ class _LocalModelCV(_BaseFRFEstimator):
         for name, attr in vars(estimator).items():
             if name.endswith("_") and not name.startswith("_"):
                 setattr(self, name, attr)
+        if params.get("per_band"):
+            per_bin = {i: res.per_bin for i, res in zip(todo, results, strict=True)}
+            self._fit_per_band(params, u, y, F, sample_time, candidates, layouts,
+                               per_bin, criterion)
         return self
+
+    def _fit_per_band(self, params, u, y, F, sample_time, candidates, layouts,
+                      per_bin, criterion) -> None:
+        """Choose a candidate per region of slow bins and blend their FRFs."""
+        P, M = y.shape
+        n_half = M // 2 + 1
+        bands = params["bands"]
+        if bands is None:
+            bands = _auto_band_count(n_half, params["half_windows"])
+        bounds = _bands.region_bounds(bands, n_half, self.slow_frequencies_)
+        R = bounds.size - 1
+        values = np.full((len(candidates), R), np.inf)
+        invalid = np.full((len(candidates), R), n_half)
+        for i, pb in per_bin.items():
+            values[i] = _bands.region_values(
+                pb, bounds,
+                partial(_combine_mask, layout=layouts[i], criterion=criterion,
+                        n_slow=M),
+            )
+            invalid[i] = np.add.reduceat(~np.isfinite(pb), bounds[:-1])
+        chosen = [int(np.lexsort((values[:, r], invalid[:, r]))[0])
+                  for r in range(R)]
+        fitted = {self.best_index_: self.best_estimator_}
+        for i in dict.fromkeys(chosen):
+            if i not in fitted:
+                fitted[i] = clone(self._base_class(**candidates[i])).fit(
+                    list(u), list(y), F, sample_time=sample_time)
+        ramp = min(params["half_windows"])
+        weights = _bands.region_weights(bounds, ramp)
+        blended = _bands.blend([fitted[i] for i in chosen], weights,
+                               self.n_samples_, F)
+        for name, attr in blended.items():
+            setattr(self, name, attr)
+        self.band_bounds_ = bounds
+        self.band_frequencies_ = bounds / (self.n_samples_ * sample_time)
+        self.band_params_ = [dict(candidates[i]) for i in chosen]
+        self.band_index_ = np.array(chosen)
+        self.band_criterion_ = values[chosen, np.arange(R)]
+        self.band_estimators_ = [fitted[i] for i in chosen]
 
     @property
     def best_score_(self) -> float:
@@ -583,6 +666,8 @@ class LRMBeyondNyquistCV(_LocalModelCV):
         "criterion": _check_criterion,
         "n_jobs": _check_n_jobs,
         "verbose": check_bool,
+        "per_band": check_bool,
+        "bands": _check_bands,
     }
 
     def __init__(
@@ -595,6 +680,8 @@ class LRMBeyondNyquistCV(_LocalModelCV):
         criterion: str = "aicc",
         n_jobs: int | None = None,
         verbose: bool = False,
+        per_band: bool = False,
+        bands=None,
     ):
         self.half_windows = half_windows
         self.num_degrees = num_degrees
@@ -603,6 +690,18 @@ class LRMBeyondNyquistCV(_LocalModelCV):
         self.criterion = criterion
         self.n_jobs = n_jobs
         self.verbose = verbose
+        self.per_band = per_band
+        self.bands = bands
+
+    def _checked_params(self) -> dict:
+        params = super()._checked_params()
+        if params["bands"] is not None and not params["per_band"]:
+            raise ValueError(
+                f"`bands` ({self.bands!r}) is used by the per-band selection "
+                "only; got per_band=False. Pass per_band=True with it, or drop "
+                "bands."
+            )
+        return params
 
     def _grid(self, params: dict) -> dict:
         return {

@@ -1,0 +1,305 @@
+"""Does the choice of window and degrees generalise to stages nobody tuned on?
+
+For each random stage ``lrmfrf.plants.random_stage(seed)`` (its own ``F``) and
+each of its four systems (``G_y4`` and ``G_z``, closed and open loop), one
+record is simulated: a random-phase multisine of ``N = 400 F`` samples (the
+slow record has ``M = 400`` samples, ``N = 1200`` at ``F = 3``), slow-output
+noise at a signal-to-noise ratio drawn from 30-45 dB. ``wafer_stage()``
+(``F = 3``) is added with ``seed="wafer"``. Every setting of
+``LRMBeyondNyquistCV``'s default grid is fitted once (closed form, QR with
+leverages); its error is the median over the valid fast bins ``k >= 1`` (true
+FRF finite and non-zero) of ``|G_hat - G| / |G|`` against
+``lrmfrf.simulate.true_frf``. The *oracle* of a record is the setting with
+the lowest error. Per criterion, the table reports the pick's error divided by
+the oracle's, its mean and worst over records; ``fixed`` is the one setting of
+the grid with the lowest mean ratio over the records of the table (chosen with
+the truth, so a bound no criterion can use).
+
+Tuning stages: seeds 1000-1019; held-out stages: seeds 2000-2019.
+
+Run:  python benchmarks/generalisation_selection.py --seeds 1000-1019
+      python benchmarks/generalisation_selection.py --seeds 2000-2019 --wafer
+      [--n-jobs 2] [--criteria aicc gcv ...] [--csv out.csv]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+
+import numpy as np
+from joblib import Parallel, delayed
+
+from lrmfrf.estimators.selection import (
+    CRITERIA,
+    LRMBeyondNyquistCV,
+    _combine,
+    _local_criteria,
+)
+from lrmfrf.local_models import one_sided_fast_grid
+from lrmfrf.plants import random_stage, wafer_stage
+from lrmfrf.signals import multisine
+from lrmfrf.simulate import simulate, true_frf
+from lrmfrf.windows import LocalModelLayout
+
+#: Slow samples per record (N = SLOW_SAMPLES * F).
+SLOW_SAMPLES = 400
+#: Signal-to-noise ratios are drawn uniformly from this range (dB).
+SNR_RANGE = (30.0, 45.0)
+SYSTEMS = (("closed", "G_y4"), ("closed", "G_z"), ("open", "G_y4"), ("open", "G_z"))
+
+
+def default_grid(F: int, M: int = SLOW_SAMPLES) -> list[dict]:
+    """The candidates of ``LRMBeyondNyquistCV()`` that are feasible for one
+    record of ``M`` slow samples (at least 2 residual dof), in its order."""
+    est = LRMBeyondNyquistCV()
+    candidates = est._candidates(est._checked_params())
+    out = []
+    for c in candidates:
+        layout = LocalModelLayout(F=F, **c)
+        if layout.dof >= 2 and layout.window <= M:
+            out.append(c)
+    return out
+
+
+def stage_systems(seed) -> list[tuple[str, object, int]]:
+    """``(label, system, F)`` of the four systems of one stage (or the wafer
+    stage's two closed-loop systems for ``seed="wafer"``)."""
+    if seed == "wafer":
+        stage = wafer_stage()
+        return [(f"wafer/closed/{name}", getattr(stage, name), 3)
+                for name in ("G_y4", "G_z")]
+    out = []
+    for loop, name in SYSTEMS:
+        stage, draw = random_stage(int(seed), loop=loop)
+        out.append((f"{seed}/{loop}/{name}", getattr(stage, name),
+                    draw.downsampling_factor))
+    return out
+
+
+def record_ingredients(system, F: int, seed: int, grid=None) -> dict:
+    """Simulate one record; per candidate its true error and criteria inputs.
+
+    Returns
+    -------
+    dict
+        ``errors`` (C,), median relative error over valid bins; ``rel`` (C, K)
+        the per-bin relative errors (NaN where not valid); ``per_window``: list
+        of dicts of per-window arrays (``residual``, ``press``, ``ok``,
+        ``relvar`` the Lemma-2 variance factor over |G_hat|^2 summed over
+        bands); ``layouts``; ``snr_db``; ``N``.
+    """
+    rng = np.random.default_rng(seed)
+    N = SLOW_SAMPLES * F
+    snr = float(rng.uniform(*SNR_RANGE))
+    u = multisine(N, rng=rng)
+    sim = simulate(system, u, F, snr_db=snr, rng=rng)
+    G = true_frf(system, N)
+    U = np.fft.fft(u)[None]
+    Y = np.fft.fft(sim.y_l)[None]
+    grid = default_grid(F) if grid is None else grid
+    usable = np.isfinite(G) & (np.abs(G) > 0)
+    usable[0] = False
+    errors = np.empty(len(grid))
+    rel = np.full((len(grid), G.size), np.nan)
+    per_window, layouts = [], []
+    for i, c in enumerate(grid):
+        layout = LocalModelLayout(F=F, **c)
+        per_bin, ok, band, extra = _ingredients(U, Y, layout)
+        frf = one_sided_fast_grid(band, N, F, conj=True)
+        r = np.abs(frf - G) / np.abs(np.where(usable, G, 1.0))
+        r[~usable] = np.nan
+        rel[i] = r
+        errors[i] = np.nanmedian(r) if np.isfinite(r).any() else np.inf
+        per_window.append({**per_bin, "ok": ok, **extra})
+        layouts.append(layout)
+    return {"errors": errors, "rel": rel, "per_window": per_window,
+            "layouts": layouts, "snr_db": snr, "N": N, "M": N // F, "F": F,
+            "grid": grid}
+
+
+def _ingredients(U, Y, layout):
+    """The library's per-window criteria plus extras explored here."""
+    from lrmfrf.local_models import half_slow_bins
+    from lrmfrf.solvers import solve_local_least_squares
+    from lrmfrf.windows import local_regressor
+
+    per_bin, ok, band = _local_criteria(U, Y, layout)
+    bins = half_slow_bins(Y.shape[1])
+    A, b = local_regressor(U, Y, bins, layout)
+    sol = solve_local_least_squares(
+        A, b, return_leverage=True,
+        rank_columns=layout.n_system + layout.n_transient)
+    theta = np.where(sol.well_posed[:, None], sol.theta, 0.0)
+    res = b - np.einsum("bij,bj->bi", A, theta)
+    M = Y.shape[1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        loo = np.mean(np.abs(res / (1.0 - sol.leverage)) ** 2, axis=1) / M
+        gvar = layout.F**2 * sol.gram_inv_diag[:, : layout.F]
+        relvar = np.sum(gvar / np.abs(band) ** 2, axis=1)
+        absvar = np.sum(gvar, axis=1)
+    return per_bin, ok, band, {"loo": loo, "relvar": relvar, "absvar": absvar}
+
+
+# --- criteria -----------------------------------------------------------------
+
+
+def _weights(size: int, M: int) -> np.ndarray:
+    w = np.full(size, 2.0)
+    w[0] = 1.0
+    if M % 2 == 0:
+        w[-1] = 1.0
+    return w
+
+
+def _wmean(values, ok, M):
+    w = _weights(values.size, M)[ok]
+    return float(np.sum(w * values[ok]) / w.sum()) if w.size else np.inf
+
+
+def criterion_values(rec: dict, name: str) -> np.ndarray:
+    """Value of criterion ``name`` for every candidate of a record."""
+    M = rec["M"]
+    out = np.empty(len(rec["layouts"]))
+    for i, (pw, layout) in enumerate(zip(rec["per_window"], rec["layouts"],
+                                         strict=True)):
+        ok = pw["ok"]
+        if not ok.any():
+            out[i] = np.inf
+            continue
+        L, p = layout.n_equations, layout.n_params
+        if name in CRITERIA:
+            values = pw["press" if name == "press" else "residual"]
+            out[i] = _combine(values, ok, layout, name, M)
+        elif name == "loo":
+            out[i] = np.log(_wmean(pw["loo"], ok, M))
+        elif name.startswith("aic_k"):  # log s2 + k p / (L - p - 1)
+            k = float(name[5:])
+            out[i] = np.log(_wmean(pw["residual"], ok, M)) + k * p / (L - p - 1)
+        elif name == "relstd":  # s2_dof * relvar, mean of logs over windows
+            s2 = pw["residual"] * L / (L - p)
+            out[i] = _wmean(np.log(s2 * pw["relvar"]), ok, M)
+        elif name == "relstd_med":
+            s2 = pw["residual"] * L / (L - p)
+            out[i] = float(np.median(np.log(s2 * pw["relvar"])[ok]))
+        else:
+            raise ValueError(name)
+    return out
+
+
+def pick(rec: dict, name: str) -> int:
+    """Index chosen by criterion ``name`` (fewest invalid bins first, as the
+    estimator)."""
+    values = criterion_values(rec, name)
+    n_invalid = np.array([np.count_nonzero(~pw["ok"]) for pw in rec["per_window"]])
+    return int(np.lexsort((values, n_invalid))[0])
+
+
+def selection_table(seeds, *, criteria=CRITERIA, n_jobs: int = 1,
+                    records=None) -> dict:
+    """Pick / oracle ratios of each criterion over the records of ``seeds``.
+
+    Parameters
+    ----------
+    seeds : iterable of int or "wafer"
+        Random-stage seeds (four records each) and/or ``"wafer"``.
+    criteria : sequence of str
+        Names known to :func:`criterion_values`.
+    n_jobs : int
+        Records simulated and fitted in parallel.
+    records : list of dict, optional
+        Precomputed :func:`record_ingredients` (with ``label``) to reuse.
+
+    Returns
+    -------
+    dict
+        ``rows`` (one per record: label, F, snr, oracle setting and error, the
+        ratio of each criterion), ``summary`` (per criterion and ``fixed``:
+        mean and worst ratio), ``fixed`` (the best single setting).
+    """
+    if records is None:
+        jobs = [(label, system, F, 7919 * k + 13)
+                for k, seed in enumerate(seeds)
+                for label, system, F in stage_systems(seed)]
+        out = Parallel(n_jobs=n_jobs)(
+            delayed(record_ingredients)(system, F, rec_seed)
+            for _, system, F, rec_seed in jobs
+        )
+        records = [{**r, "label": label} for (label, *_), r in zip(jobs, out,
+                                                                   strict=True)]
+    rows = []
+    for rec in records:
+        oracle = int(np.argmin(rec["errors"]))
+        row = {"label": rec["label"], "F": rec["F"], "snr_db": rec["snr_db"],
+               "oracle": tuple(rec["grid"][oracle].values()),
+               "oracle_error": rec["errors"][oracle]}
+        for name in criteria:
+            i = pick(rec, name)
+            row[name] = rec["errors"][i] / rec["errors"][oracle]
+            row[f"{name}_pick"] = tuple(rec["grid"][i].values())
+        rows.append(row)
+    # best single fixed setting: keyed by the setting (grids differ with F)
+    keys = {tuple(c.values()) for rec in records for c in rec["grid"]}
+    best_key, best_ratios = None, None
+    for key in sorted(keys):
+        ratios = []
+        for rec in records:
+            settings = [tuple(c.values()) for c in rec["grid"]]
+            if key not in settings:
+                ratios = None
+                break
+            ratios.append(rec["errors"][settings.index(key)] / rec["errors"].min())
+        if ratios is not None and (best_ratios is None
+                                   or np.mean(ratios) < np.mean(best_ratios)):
+            best_key, best_ratios = key, ratios
+    for row, ratio in zip(rows, best_ratios, strict=True):
+        row["fixed"] = ratio
+    summary = {name: (float(np.mean([r[name] for r in rows])),
+                      float(np.max([r[name] for r in rows])))
+               for name in (*criteria, "fixed")}
+    return {"rows": rows, "summary": summary, "fixed": best_key,
+            "records": records}
+
+
+def _parse_seeds(text: str) -> list:
+    out = []
+    for part in text.split(","):
+        if "-" in part:
+            a, b = part.split("-")
+            out.extend(range(int(a), int(b) + 1))
+        else:
+            out.append(int(part))
+    return out
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", default="1000-1019",
+                        help="random-stage seeds, e.g. 1000-1019 or 2000-2019")
+    parser.add_argument("--wafer", action="store_true",
+                        help="add wafer_stage() (its two closed-loop systems)")
+    parser.add_argument("--criteria", nargs="+", default=list(CRITERIA))
+    parser.add_argument("--n-jobs", type=int, default=1)
+    parser.add_argument("--csv", help="write one row per record here")
+    args = parser.parse_args(argv)
+    seeds = _parse_seeds(args.seeds) + (["wafer"] if args.wafer else [])
+    table = selection_table(seeds, criteria=args.criteria, n_jobs=args.n_jobs)
+    rows = table["rows"]
+    print(f"{len(rows)} records ({args.seeds}{' + wafer' if args.wafer else ''}); "
+          f"M = {SLOW_SAMPLES}, SNR {SNR_RANGE[0]:g}-{SNR_RANGE[1]:g} dB; "
+          "ratio = pick error / oracle error (median rel. error, valid bins)")
+    print(f"{'criterion':14s}{'mean':>8s}{'worst':>8s}")
+    for name, (mean, worst) in table["summary"].items():
+        label = f"fixed {table['fixed']}" if name == "fixed" else name
+        print(f"{label:14s}{mean:8.3f}{worst:8.3f}")
+    if args.csv:
+        with open(args.csv, "w", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
