@@ -103,6 +103,10 @@ __all__ = [
 #: Allowed values of ``criterion``.
 CRITERIA = ("aicc", "gcv", "press")
 
+#: Attributes set by the per-band selection only.
+_BAND_ATTRIBUTES = ("band_bounds_", "band_frequencies_", "band_params_",
+                    "band_index_", "band_criterion_", "band_estimators_")
+
 #: Residual degrees of freedom each criterion needs (AICc divides by L - p - 1).
 _MIN_DOF = {"aicc": 2, "gcv": 1, "press": 1}
 
@@ -498,6 +502,8 @@ class _LocalModelCV(_BaseFRFEstimator):
         for name, attr in vars(estimator).items():
             if name.endswith("_") and not name.startswith("_"):
                 setattr(self, name, attr)
+        for name in _BAND_ATTRIBUTES:  # from an earlier per-band fit
+            vars(self).pop(name, None)
         if params.get("per_band"):
             per_bin = {i: res.per_bin for i, res in zip(todo, results, strict=True)}
             self._fit_per_band(params, u, y, F, sample_time, candidates, layouts,
@@ -574,7 +580,12 @@ class _LocalModelCV(_BaseFRFEstimator):
         return results
 
     def _fast_frf(self, n_samples: int) -> np.ndarray:
-        return self.best_estimator_._fast_frf(n_samples)
+        if "band_params_" not in vars(self):
+            return self.best_estimator_._fast_frf(n_samples)
+        # per-band: the blended frf_, mirrored (as LRMBeyondNyquist does)
+        half = self.frf_
+        mirror = np.conj(half[..., 1 : n_samples - n_samples // 2][..., ::-1])
+        return np.concatenate([half, mirror], axis=-1)
 
 
 class LRMBeyondNyquistCV(_LocalModelCV):
