@@ -188,6 +188,13 @@ def criterion_values(rec: dict, name: str) -> np.ndarray:
         elif name.startswith("aicg_k"):  # geometric mean + k p / (L - p - 1)
             k = float(name[6:])
             out[i] = _wmean(np.log(pw["residual"]), ok, M) + k * p / (L - p - 1)
+        elif name.startswith("dofg_k"):  # unbiased s2 = rss/(L-p), + k p/(L-p)
+            k = float(name[6:])
+            out[i] = (_wmean(np.log(pw["residual"] * L / (L - p)), ok, M)
+                      + k * p / (L - p))
+        elif name == "bicg":
+            out[i] = (_wmean(np.log(pw["residual"]), ok, M)
+                      + np.log(L) * p / (L - p - 1))
         elif name == "relstd":  # s2_dof * relvar, mean of logs over windows
             s2 = pw["residual"] * L / (L - p)
             out[i] = _wmean(np.log(s2 * pw["relvar"]), ok, M)
@@ -290,7 +297,7 @@ def main(argv=None) -> int:
                         help="random-stage seeds, e.g. 1000-1019 or 2000-2019")
     parser.add_argument("--wafer", action="store_true",
                         help="add wafer_stage() (its two closed-loop systems)")
-    parser.add_argument("--criteria", nargs="+", default=list(CRITERIA))
+    parser.add_argument("--criteria", nargs="+", default=["gaic", *CRITERIA[:-1]])
     parser.add_argument("--n-jobs", type=int, default=1)
     parser.add_argument("--csv", help="write one row per record here")
     args = parser.parse_args(argv)
