@@ -512,3 +512,39 @@ def test_gaic_is_finite_on_noise_free_in_class_data():
                               den_degree=1)
     value = local_model_criterion(*_dfts(u, y), layout, criterion="gaic").value
     assert np.isfinite(value)
+
+
+@pytest.mark.slow
+def test_gaic_picks_near_the_oracle_on_held_out_random_stages():
+    """Slow version of benchmarks/generalisation_selection.py on two held-out
+    stages (seeds 2000-2001, closed loop, outputs y4 and z; M = 400, 30-45 dB):
+    the mean over the 4 records of (pick error / best of the grid) is at most
+    1.25, the issue's bound on the worst record applied to the mean of a
+    few records (the benchmark's 82 records average 1.11)."""
+    from lrmfrf.plants import random_stage
+    from lrmfrf.simulate import simulate, true_frf
+
+    ratios = []
+    for k, seed in enumerate((2000, 2001)):
+        stage, draw = random_stage(seed)
+        F_s = draw.downsampling_factor
+        n_s = 400 * F_s
+        for name in ("G_y4", "G_z"):
+            system = getattr(stage, name)
+            rng = np.random.default_rng(31 + 2 * k + (name == "G_z"))
+            u = multisine(n_s, rng=rng)
+            y = simulate(system, u, F_s, snr_db=rng.uniform(30, 45), rng=rng).y_l
+            G = true_frf(system, n_s)[1:]
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                cv = LRMBeyondNyquistCV().fit(u, y, F_s)
+                errors = [
+                    np.nanmedian(np.abs(LRMBeyondNyquist(**p).fit(u, y, F_s).frf_[1:]
+                                        - G) / np.abs(G))
+                    for p, ok in zip(cv.cv_results_["params"],
+                                     cv.cv_results_["identifiable"], strict=True)
+                    if ok
+                ]
+            picked = np.nanmedian(np.abs(cv.frf_[1:] - G) / np.abs(G))
+            ratios.append(picked / min(errors))
+    assert np.mean(ratios) <= 1.25
