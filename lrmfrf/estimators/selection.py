@@ -256,9 +256,9 @@ def _combine_mask(per_bin, well_posed, *, layout, criterion, n_slow) -> float:
 
 
 def _auto_band_count(n_half: int, half_windows) -> int:
-    """Default number of regions: each about two of the largest windows wide
-    (at least 1, at most 8)."""
-    return int(np.clip(round(n_half / (2 * max(half_windows) + 1)), 1, 8))
+    """Default number of regions: each about half as wide as the largest
+    window (at least 1, at most 8; 6 for M = 400 and the default grid)."""
+    return int(np.clip(round(2 * n_half / (2 * max(half_windows) + 1)), 1, 8))
 
 
 def _local_criteria(U, Y, layout, *, chunk_size=None):
@@ -679,9 +679,9 @@ class LRMBeyondNyquistCV(_LocalModelCV):
         With ``per_band=True``: the number of equal regions, or the edges
         between regions as slow frequencies (the units of
         ``slow_frequencies_``: Hz with ``sample_time``), strictly between 0
-        and the slow Nyquist frequency. ``None``: regions about as wide as
-        the largest window (``M // 2 + 1`` bins over ``2 max(half_windows) +
-        1``, 1 to 8 regions). Passing ``bands`` without ``per_band=True`` is
+        and the slow Nyquist frequency. ``None``: regions about half as wide
+        as the largest window (``2 (M // 2 + 1)`` bins over ``2
+        max(half_windows) + 1``, 1 to 8 regions; 6 for M = 400). Passing ``bands`` without ``per_band=True`` is
         an error.
 
     Attributes
