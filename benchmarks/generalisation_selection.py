@@ -15,11 +15,24 @@ the oracle's, its mean and worst over records; ``fixed`` is the one setting of
 the grid with the lowest mean ratio over the records of the table (chosen with
 the truth, so a bound no criterion can use).
 
-Tuning stages: seeds 1000-1019; held-out stages: seeds 2000-2019.
+Tuning stages: seeds 1000-1019; held-out stages: seeds 2000-2019. The
+criteria are those of ``lrmfrf.estimators.selection.CRITERIA`` and the
+variants explored for issue 15 (:func:`criterion_values`: ``loo`` full-window
+leave-one-out, ``*_g`` geometric means over windows, ``aicg_k<c>`` the GAIC
+family, ``dofg_k<c>``, ``bicg``, ``relstd`` the Lemma-2 relative std).
+
+``--per-band`` runs the per-band study instead: cluster stages
+(:func:`cluster_stage`: rigid body below 100 Hz and three modes aliasing onto
+about the same slow frequency), one record each at 40 dB, the RMS relative
+error of ``LRMBeyondNyquistCV(per_band=True)`` against the global pick and the
+best single setting of the grid on that record, and the median relative errors
+in the rigid-body region and around the cluster.
 
 Run:  python benchmarks/generalisation_selection.py --seeds 1000-1019
       python benchmarks/generalisation_selection.py --seeds 2000-2019 --wafer
-      [--n-jobs 2] [--criteria aicc gcv ...] [--csv out.csv]
+      python benchmarks/generalisation_selection.py --per-band --seeds 1-8
+      [--n-jobs 2] [--criteria gaic aicc aicg_k3 ...] [--csv out.csv]
+(about 5 s of CPU per record; 15-20 min per 20 stages on a loaded 2-core box)
 """
 
 from __future__ import annotations
