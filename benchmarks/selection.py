@@ -142,7 +142,8 @@ def run(realisations: int, n_jobs: int, seed: int = 2024):
         u = multisine(N, rms=RMS, rng=rng)
         sim = simulate(system, u, F, snr_db=SNR_DB, rng=rng)
         cv = LRMBeyondNyquistCV(half_windows=HALF_WINDOWS, num_degrees=NUM_DEGREES,
-                                den_degrees=DEN_DEGREES).fit(u, sim.y_l, F)
+                                den_degrees=DEN_DEGREES,
+                                criterion="aicc").fit(u, sim.y_l, F)
         assert tuple(cv.best_params_.values()) == candidates[picks["aicc"][0]]
         table.append({
             "system": name,
@@ -251,6 +252,7 @@ def heldout_one_seed(system, G, above, seed: int) -> dict:
         half_windows=HELDOUT_GRID["half_window"],
         num_degrees=HELDOUT_GRID["num_degree"],
         den_degrees=HELDOUT_GRID["den_degree"],
+        criterion="aicc",
     ).fit(list(u), list(y), F)
     r2 = results["mean_test_r2"]
     return {
