@@ -224,7 +224,8 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--experiments", type=int, default=1)
     parser.add_argument("--calibration-runs", type=int, default=10)
     parser.add_argument("--workers", type=int, default=1)
-    parser.add_argument("--out", default="benchmarks/results/generalisation_diagnose.csv")
+    parser.add_argument("--out",
+                        default="benchmarks/results/generalisation_diagnose.csv")
     args = parser.parse_args(argv)
     seeds = parse_seeds(args.seeds)
     start = time.perf_counter()

@@ -257,7 +257,8 @@ def hidden_effect_experiment(
                 continue
         return HiddenExperiment(
             u_h=u, y_l=y, F=F, sample_time=Ts, plant=nominal,
-            controller=None if loop == "open" else controller, true_plant=true_plant, true_system=system,
+            controller=None if loop == "open" else controller,
+            true_plant=true_plant, true_system=system,
             effects=drawn, oracle_gap=gap,
             noise_std=np.array([s.noise_std for s in sims]),
         )
