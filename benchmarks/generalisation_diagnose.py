@@ -3,11 +3,12 @@
 For every seed, :func:`lrmfrf.plants.random_stage` draws a stage (its own
 ``F``, 2-5, and modes placed to alias for it); for each loop type and each
 effect class of :mod:`lrmfrf.discrepancy.hidden` (plus ``none``, nothing
-hidden) one record is simulated with :func:`hidden_effect_experiment`: ONE
-experiment, N = 1200, output SNR ``--snr`` dB (default 40), the effect drawn
-with the generator's ranges and no detectability filter (``min_gap=0``).
-``diagnose`` gets the nominal plant (``y4`` channel), the controller in
-closed loop (``None`` in open loop) and the data.
+hidden: ``--null-repeats`` records, default 3) one record is simulated with
+:func:`hidden_effect_experiment`: ONE experiment, N = 1200, output SNR
+``--snr`` dB (default 40), the effect drawn with the generator's ranges and no
+detectability filter (``min_gap=0``). ``diagnose`` gets the nominal plant
+(``y4`` channel), the controller in closed loop (``None`` in open loop) and
+the data.
 
 Figures, per loop type and per effect:
 
@@ -54,10 +55,12 @@ def run_record(job: tuple) -> dict:
     Parameters
     ----------
     job : tuple
-        ``(seed, loop, effect, snr_db, n_experiments, calibration_runs,
-        options)`` with ``options`` a dict of extra ``diagnose`` keywords.
+        ``(seed, loop, effect, repeat, snr_db, n_experiments,
+        calibration_runs, options)`` with ``repeat`` in 0..3 (another noise
+        and input draw) and ``options`` a dict of extra ``diagnose`` keywords.
     """
-    seed, loop, effect, snr_db, n_experiments, calibration_runs, options = job
+    (seed, loop, effect, repeat, snr_db, n_experiments, calibration_runs,
+     options) = job
     import warnings
 
     from lrmfrf.discrepancy import diagnose
@@ -66,7 +69,8 @@ def run_record(job: tuple) -> dict:
 
     start = time.perf_counter()
     stage, draw = random_stage(seed, loop=loop)
-    record_seed = seed * 100 + EFFECTS.index(effect) + (50 if loop == "open" else 0)
+    record_seed = (seed * 100 + EFFECTS.index(effect) + 10 * repeat
+                   + (50 if loop == "open" else 0))
     experiment = hidden_effect_experiment(
         None if effect == "none" else effect, rng=record_seed, stage=stage,
         loop=loop, F=draw.downsampling_factor, snr_db=snr_db,
@@ -100,7 +104,8 @@ def run_record(job: tuple) -> dict:
 
 def diagnose_table(seeds, *, loops=LOOPS, effects=EFFECTS, snr_db: float = 40.0,
                    n_experiments: int = 1, calibration_runs: int = 10,
-                   workers: int = 1, options: dict | None = None) -> list[dict]:
+                   workers: int = 1, options: dict | None = None,
+                   null_repeats: int = 3) -> list[dict]:
     """Diagnose hidden-effect records on random stages; one row per record.
 
     Parameters
@@ -120,6 +125,10 @@ def diagnose_table(seeds, *, loops=LOOPS, effects=EFFECTS, snr_db: float = 40.0,
         Processes (1: in this process).
     options : dict, optional
         Further ``diagnose`` keywords.
+    null_repeats : int, default 3
+        Records with nothing hidden per stage and loop (1-4; each with its
+        own input and noise), so that the false-alarm rate rests on more
+        records than one per stage.
 
     Returns
     -------
@@ -128,9 +137,12 @@ def diagnose_table(seeds, *, loops=LOOPS, effects=EFFECTS, snr_db: float = 40.0,
         ``any_finding``, ``all_named``, ``exact``, ``gap_before``,
         ``gap_after``, ``seconds``, ``error`` (empty unless diagnose raised).
     """
-    jobs = [(int(seed), loop, effect, snr_db, n_experiments, calibration_runs,
-             dict(options or {}))
-            for seed in seeds for loop in loops for effect in effects]
+    if not 1 <= null_repeats <= 4:
+        raise ValueError(f"`null_repeats` must be in 1..4; got {null_repeats}.")
+    jobs = [(int(seed), loop, effect, repeat, snr_db, n_experiments,
+             calibration_runs, dict(options or {}))
+            for seed in seeds for loop in loops for effect in effects
+            for repeat in range(null_repeats if effect == "none" else 1)]
     if workers > 1:
         with ProcessPoolExecutor(workers, initializer=_single_thread) as pool:
             return list(pool.map(run_record, jobs, chunksize=1))
@@ -224,6 +236,8 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--experiments", type=int, default=1)
     parser.add_argument("--calibration-runs", type=int, default=10)
     parser.add_argument("--workers", type=int, default=1)
+    parser.add_argument("--null-repeats", type=int, default=3,
+                        help="records with nothing hidden per stage and loop")
     parser.add_argument("--out",
                         default="benchmarks/results/generalisation_diagnose.csv")
     args = parser.parse_args(argv)
@@ -232,7 +246,7 @@ def main(argv=None) -> list[dict]:
     rows = diagnose_table(seeds, loops=args.loops, effects=args.effects,
                           snr_db=args.snr, n_experiments=args.experiments,
                           calibration_runs=args.calibration_runs,
-                          workers=args.workers)
+                          workers=args.workers, null_repeats=args.null_repeats)
     print(f"{len(rows)} records on {len(seeds)} stages (seeds {args.seeds}) in "
           f"{time.perf_counter() - start:.0f} s; SNR {args.snr:g} dB, "
           f"P = {args.experiments}, {args.calibration_runs} calibration runs")
