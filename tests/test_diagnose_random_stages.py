@@ -114,7 +114,9 @@ def test_rates_on_more_stages(loop):
     Targets: <= 5 % false alarms and >= 90 % hits. With 16 null records at a
     true rate of 5 %, P(more than 2 alarms) = 4 %; of the clear effect
     records at a true hit rate of 90 %, at most 20 % missed keeps the test
-    passing with probability > 0.9 for the 10-30 clear records expected.
+    passing with probability > 0.9 for the 10-30 clear records expected in
+    closed loop (in open loop at 40 dB no effect reaches a gap of 3, see the
+    benchmark's docstring, so only the false alarms are checked there).
     """
     from generalisation_diagnose import diagnose_table
 
