@@ -37,6 +37,10 @@ from .fit import FitProblem
 #: Fewest compared bins for a meaningful diagnosis.
 MIN_BINS = 20
 
+#: Fewest residual degrees of freedom of the default estimator's local fits
+#: (issue 15: at F = 5 the default half window leaves none with one experiment).
+MIN_DEFAULT_DOF = 10
+
 
 @dataclass(frozen=True)
 class SearchSettings:
@@ -145,9 +149,7 @@ def fit_estimator(estimator, u, y, F, sample_time):
     The template is an unfitted clone, refitted by the calibration runs.
     """
     if estimator is None:
-        from ..estimators import LRMBeyondNyquist
-
-        estimator = LRMBeyondNyquist()
+        estimator = default_estimator(F, u.shape[0], u.shape[1] // F)
     if not hasattr(estimator, "fit"):
         raise TypeError(
             "`estimator` must be an FRF estimator with fit(u_h, y_l, F, *, "
@@ -183,6 +185,35 @@ def fit_estimator(estimator, u, y, F, sample_time):
             "samples or use a smaller half_window."
         ) from exc
     return fitted, template
+
+
+def default_estimator(F: int, n_experiments: int, n_slow: int):
+    """``LRMBeyondNyquist()`` with a half window that leaves enough dof.
+
+    The default half window (18) leaves ``P (2n + 1) - n_params`` residual
+    degrees of freedom: 10 at ``F = 3`` with one experiment, 5 at ``F = 4`` and
+    none at ``F = 5`` (then ``frf_std_`` is NaN and nothing can be tested).
+    The half window is raised, one slow bin at a time, until the local fits
+    keep :data:`MIN_DEFAULT_DOF` degrees of freedom or the window spans the
+    record; where the default already does, it is used unchanged.
+    """
+    from ..estimators import LRMBeyondNyquist
+    from ..windows import LocalModelLayout
+
+    estimator = LRMBeyondNyquist()
+    params = estimator.get_params()
+    half_window = int(params["half_window"])
+
+    def dof(n):
+        return LocalModelLayout(
+            F=F, half_window=n, num_degree=params["num_degree"],
+            transient_degree=params["transient_degree"],
+            den_degree=params["den_degree"], n_experiments=n_experiments,
+        ).dof
+
+    while dof(half_window) < MIN_DEFAULT_DOF and 2 * (half_window + 1) + 1 <= n_slow:
+        half_window += 1
+    return estimator.set_params(half_window=half_window)
 
 
 def usable_bins(fitted, band) -> np.ndarray:

@@ -83,11 +83,13 @@ class HiddenExperiment:
     sample_time : float
     plant : control.StateSpace
         Nominal discrete plant ``u -> y4`` (what the engineer has).
-    controller : control.StateSpace
+    controller : control.StateSpace or None
+        The stage's controller; ``None`` for open-loop data.
     true_plant : control.StateSpace
         Discrete true plant.
     true_system : control.StateSpace
-        True closed loop ``P_true / (1 + C P_true)``.
+        True measured system: the closed loop ``P_true / (1 + C P_true)``, or
+        ``P_true`` for open-loop data.
     effects : tuple of HiddenEffect
         Empty for a no-effect experiment.
     oracle_gap : float
@@ -169,8 +171,9 @@ def hidden_effect_experiment(
     min_gap: float = 5.0,
     max_draws: int = 20,
     stage=None,
+    loop: str = "closed",
 ) -> HiddenExperiment:
-    """Simulate closed-loop data of the wafer stage with hidden effect(s).
+    """Simulate closed- or open-loop data of a stage with hidden effect(s).
 
     Parameters
     ----------
@@ -188,7 +191,13 @@ def hidden_effect_experiment(
         Redraw until the oracle gap reaches this (0: no check).
     max_draws : int
     stage : WaferStage, optional
-        Default :func:`lrmfrf.plants.wafer_stage`.
+        Default :func:`lrmfrf.plants.wafer_stage`; e.g. a
+        :func:`lrmfrf.plants.random_stage`.
+    loop : {"closed", "open"}, default "closed"
+        ``"closed"``: the data are of the true plant in the loop with the
+        stage's controller (``u_h`` a disturbance force), the experiment's
+        ``controller`` is that controller. ``"open"``: the data are of the true
+        plant itself and ``controller`` is ``None`` (what ``diagnose`` gets).
 
     Returns
     -------
@@ -199,6 +208,8 @@ def hidden_effect_experiment(
     from ..signals import multisine
     from ..simulate import simulate, true_frf
 
+    if loop not in ("closed", "open"):
+        raise ValueError(f"`loop` must be 'closed' or 'open'; got {loop!r}.")
     rng = np.random.default_rng(rng)
     stage = wafer_stage() if stage is None else stage
     Ts = stage.sample_time
@@ -214,10 +225,13 @@ def hidden_effect_experiment(
             for e in effects
         )
         true_plant = _true_plant(stage, drawn)
-        try:
-            system = _closed_loop(true_plant, controller)
-        except ValueError:
-            continue
+        if loop == "open":
+            system = true_plant
+        else:
+            try:
+                system = _closed_loop(true_plant, controller)
+            except ValueError:
+                continue
         u = np.stack([multisine(n_samples, rms=rms, rng=rng)
                       for _ in range(n_experiments)])
         sims = [simulate(system, u[p], F, snr_db=snr_db, rng=rng)
@@ -231,7 +245,10 @@ def hidden_effect_experiment(
                 warnings.simplefilter("ignore")
                 est = LRMBeyondNyquist().fit(u, y, F, sample_time=Ts)
             g_true = true_frf(system, n_samples)[1:]
-            g_nom = true_frf(stage.G_y4, n_samples)[1:]
+            nominal_system = (
+                nominal if loop == "open" else _closed_loop(nominal, controller)
+            )
+            g_nom = true_frf(nominal_system, n_samples)[1:]
             std = est.frf_std_[1:]
             keep = np.isfinite(std) & (std > 0)
             gap = float(np.sqrt(np.mean(np.abs(g_true - g_nom)[keep] ** 2
@@ -240,7 +257,8 @@ def hidden_effect_experiment(
                 continue
         return HiddenExperiment(
             u_h=u, y_l=y, F=F, sample_time=Ts, plant=nominal,
-            controller=controller, true_plant=true_plant, true_system=system,
+            controller=None if loop == "open" else controller,
+            true_plant=true_plant, true_system=system,
             effects=drawn, oracle_gap=gap,
             noise_std=np.array([s.noise_std for s in sims]),
         )

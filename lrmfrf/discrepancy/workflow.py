@@ -89,7 +89,10 @@ def diagnose(
         are named at the plant level. Without it the measured system is ``P``.
     estimator : estimator, optional
         FRF estimator with ``fit(u_h, y_l, F, *, sample_time)`` and ``frf_``,
-        ``frf_std_``, ``valid_`` (default ``LRMBeyondNyquist()``). An already
+        ``frf_std_``, ``valid_`` (default ``LRMBeyondNyquist()``, its half
+        window raised where the default would leave its local fits fewer than
+        10 residual degrees of freedom, e.g. at ``F >= 4`` with one
+        experiment; see ``_inputs.default_estimator``). An already
         fitted estimator is used as is (it must match the data sizes); an
         unfitted one is cloned and fitted to the data.
     effects : list of Effect, optional
