@@ -73,7 +73,10 @@ _DATA_DATA, _CONST_DATA, _DATA_CONST, _ONES = 0, 1, 2, 3
 # ---------------------------------------------------------------------------
 
 
-def moment_tables(weights: np.ndarray, col_base: np.ndarray, F: int, P: int) -> dict:
+def moment_tables(
+    weights: np.ndarray, col_base: np.ndarray, F: int, P: int, *,
+    weighted: bool = False,
+) -> dict:
     """Per-layout tables of the moment form of the normal equations.
 
     Parameters
@@ -86,6 +89,10 @@ def moment_tables(weights: np.ndarray, col_base: np.ndarray, F: int, P: int) -> 
         ``F + q`` the transient constant of experiment ``q``, ``F + P`` the
         sequence ``-Y``.
     F, P : int
+    weighted : bool, default=False
+        Tables for row-weighted problems (Sanathanan-Koerner): the
+        transient-transient block is then no constant but a moment of the
+        weight itself, a pair of kind ``_ONES`` (series 1) added last.
 
     Returns
     -------
@@ -144,6 +151,16 @@ def moment_tables(weights: np.ndarray, col_base: np.ndarray, F: int, P: int) -> 
             poff.append(offset)
             offset += nd
 
+    if weighted:  # the weight's own moments: the transient-transient block
+        kind.append(_ONES)
+        pa.append(0)
+        pb.append(0)
+        nd = int(min(L, 2 * top[F:F + P].max() + 1))
+        pairs["ones"] = (len(kind) - 1, offset, nd)
+        pnd.append(nd)
+        poff.append(offset)
+        offset += nd
+
     ent_ptr, ent_mom, ent_coef, ent_conj, ent_const = [0], [], [], [], []
     for i in range(p):
         for j in range(i + 1):
@@ -151,12 +168,15 @@ def moment_tables(weights: np.ndarray, col_base: np.ndarray, F: int, P: int) -> 
             product = weights[:, i] * weights[:, j]
             lo, hi = max(a, b), min(a, b)
             ent_conj.append(a < b)
-            if (lo, hi) not in pairs:  # both transient constants
-                ent_const.append(product.sum() if a == b else 0.0)
-                ent_ptr.append(len(ent_mom))
-                continue
+            key = (lo, hi)
+            if key not in pairs:  # both transient constants
+                if not weighted or a != b:
+                    ent_const.append(product.sum() if a == b else 0.0)
+                    ent_ptr.append(len(ent_mom))
+                    continue
+                key = "ones"
             ent_const.append(0.0)
-            _, off, nd = pairs[(lo, hi)]
+            _, off, nd = pairs[key]
             coef = _expand(q_basis[:, :nd], product)
             keep = np.flatnonzero(coef)
             ent_mom += list(off + keep)
