@@ -898,3 +898,57 @@ def _pad_sum(parts, length):
         padded = np.concatenate([part, np.full(length - part.size, part[-1])])
         total += padded
     return total
+
+
+def result_summary(result: RefinementResult) -> dict:
+    """The history of one refinement, for :func:`pool_summaries`."""
+    n_sk = result.sk_iterations
+    return {
+        "n_windows": int(np.count_nonzero(result.local_fit.well_posed)),
+        "sk": result.cost_history[: n_sk + 1],
+        "lm": result.cost_history[n_sk + 1 :],
+        "sk_cost": result.sk_cost_history,
+        "n_guarded": result.n_guarded,
+    }
+
+
+def pool_summaries(summaries: list[dict]) -> dict:
+    """Histories of several refinements (the output rows of a MIMO fit) as
+    one over all their windows: a refinement that stopped earlier keeps its
+    last mean cost, the means are weighted by the numbers of windows.
+
+    Parameters
+    ----------
+    summaries : list of dict
+        :func:`result_summary` of each refinement.
+
+    Returns
+    -------
+    dict
+        ``cost_history``, ``sk_cost_history``, ``sk_iterations``,
+        ``lm_iterations`` and ``n_guarded``, as in :class:`RefinementResult`.
+    """
+    n_sk = max(s["sk"].size for s in summaries) - 1
+    n_lm = max(s["lm"].size for s in summaries)
+    total = max(sum(s["n_windows"] for s in summaries), 1)
+    sk = np.zeros(n_sk + 1)
+    lm = np.zeros(n_lm)
+    sk_cost = np.zeros(n_sk + 1)
+    for s in summaries:
+        weight = s["n_windows"] / total
+        sk += weight * _padded(s["sk"], n_sk + 1)
+        sk_cost += weight * _padded(s["sk_cost"], n_sk + 1)
+        lm += weight * _padded(s["lm"] if s["lm"].size else s["sk"][-1:], n_lm)
+    return {
+        "cost_history": np.concatenate([sk, lm]),
+        "sk_cost_history": sk_cost,
+        "sk_iterations": n_sk,
+        "lm_iterations": n_lm,
+        "n_guarded": sum(s["n_guarded"] for s in summaries),
+    }
+
+
+def _padded(values: np.ndarray, length: int) -> np.ndarray:
+    if length == 0:
+        return values[:0]
+    return np.concatenate([values, np.full(length - values.size, values[-1])])
