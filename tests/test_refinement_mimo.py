@@ -72,10 +72,10 @@ def test_compiled_mimo_sk_equals_numpy_sk():
     """Per output row of the 2x2 stage (P = 2), the compiled SK gives the numpy
     SK's FRF, costs and histories to 1e-8 relative and its variances to 1e-5
     (the closed form's normal-equation accuracy, see test_fast_solver)."""
-    u, y, F, _ = _stage_records()
+    u, y, F, _ = _stage_records(N=1800, seed=1)
     P, n_u, N = u.shape
-    layout = LocalModelLayout(F=F, half_window=14, n_experiments=P, n_inputs=n_u,
-                              num_degree=4, transient_degree=4, den_degree=4)
+    layout = LocalModelLayout(F=F, half_window=12, n_experiments=P, n_inputs=n_u,
+                              num_degree=3, transient_degree=3, den_degree=4)
     U = dft(u).reshape(P, n_u * N)
     Y = dft(y)
     for o in range(y.shape[1]):
