@@ -31,6 +31,9 @@ __all__ = ["sk_windows", "root_in_disk"]
 
 _GROUPS_PER_TASK = 4
 
+_DATA_DATA_ = _compiled._DATA_DATA
+_DATA_CONST_ = _compiled._DATA_CONST
+
 
 def _root_in_unit_disk_py(cr, ci, nr, ni, d):
     """Whether ``sum_k (cr[k] + i ci[k]) z^k`` (degree ``d``) has a root with
@@ -109,6 +112,13 @@ def _sk_scratch_py(F, P, L, p, n_moments, n_centre, n_pairs, n_den):
         np.empty((n_centre, n_centre, LANES), f64),
         np.empty((n_centre, n_centre, LANES), f64),
         np.empty((4, n_den + 1), f64),
+        np.empty((F + 1, P, L, LANES), f64), np.empty((F + 1, P, L, LANES), f64),
+        np.empty((p * (p + 1) // 2, LANES), f64),
+        np.empty((p * (p + 1) // 2, LANES), f64),
+        np.empty((p, LANES), f64), np.empty((p, LANES), f64),
+        np.empty((p, LANES), f64), np.empty((p, LANES), f64),
+        np.empty((p, LANES), f64), np.empty((3, LANES), f64),
+        np.empty((2, LANES), np.bool_),
     )
 
 
@@ -189,9 +199,9 @@ def _sk_range_py(
     weights, col_base, data_index, F, n_centre, q_basis, pair_kind, pair_a,
     pair_b, pair_nd, pair_off, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const,
     rhs_ptr, rhs_mom, rhs_coef, n_moments, band_int, den_int, den_map,
-    system_factor, guard_radius, iterations, tol, keep_best, exact_tol,
-    theta_out, cost_out, flags_out, cvar_out, history, n_run,
-    first_group, stop_group,
+    system_factor, guard_radius, iterations, lm_iterations, tol, keep_best,
+    exact_tol, theta_out, cost_out, flags_out, cvar_out, history, n_run,
+    lm_history, n_run_lm, s_ptr, s_col, s_val, first_group, stop_group,
 ):
     """SK on the lane groups ``first_group..stop_group-1``."""
     P = U.shape[0]
@@ -205,9 +215,9 @@ def _sk_range_py(
             weights, col_base, data_index, F, n_centre, q_basis, pair_kind,
             pair_a, pair_b, pair_nd, pair_off, ent_ptr, ent_mom, ent_coef,
             ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef, band_int, den_int,
-            den_map, system_factor, guard_radius, iterations, tol, keep_best,
-            exact_tol, theta_out, cost_out, flags_out, cvar_out, history, n_run,
-            group, s,
+            den_map, system_factor, guard_radius, iterations, lm_iterations,
+            tol, keep_best, exact_tol, theta_out, cost_out, flags_out, cvar_out,
+            history, n_run, lm_history, n_run_lm, s_ptr, s_col, s_val, group, s,
         )
 
 
@@ -216,13 +226,15 @@ def _sk_group_py(
     weights, col_base, data_index, F, n_centre, q_basis, pair_kind, pair_a,
     pair_b, pair_nd, pair_off, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const,
     rhs_ptr, rhs_mom, rhs_coef, band_int, den_int, den_map,
-    system_factor, guard_radius, iterations, tol, keep_best, exact_tol,
-    theta_out, cost_out, flags_out, cvar_out, history, n_run, group, s,
+    system_factor, guard_radius, iterations, lm_iterations, tol, keep_best,
+    exact_tol, theta_out, cost_out, flags_out, cvar_out, history, n_run,
+    lm_history, n_run_lm, s_ptr, s_col, s_val, group, s,
 ):
     """SK for the windows ``bins[group*LANES:(group+1)*LANES]``."""
     (sr, si, Sar, Sai, Tr, Ti, Er, Ei, Or, Oi, mr, mi, Hr, Hi, gr, gi, xr, xi,
      dr, di, scale2, polyr, polyi, resr, resi, Wt, er, ei, etr, eti, thr, thi,
-     bsr, bsi, ok, k, lane, flag, tr, ti, work) = s
+     bsr, bsi, ok, k, lane, flag, tr, ti, work, hr, hi, Hsr, Hsi, gsr, gsi,
+     str_, sti, ds, lm_lane, need) = s
     # lane[0..5]: trajectory cost, best cost, SK cost, trial cost, trial rss,
     # |b|^2; flag[0..3]: active, converged, guarded, exact
     L, p = weights.shape
@@ -362,13 +374,29 @@ def _sk_group_py(
         history[group, it, 0] = total_sk
         history[group, it, 1] = total_oe
     n_run[group] = run
-    # Lemma 2 on the problem reweighted by the final estimate
+    if lm_iterations > 0:
+        n_run_lm[group] = _lm_phase(
+            sr, si, hr, hi, Sar, Sai, Tr, Ti, Er, Ei, Or, Oi, mr, mi, Hr, Hi,
+            gr, gi, xr, xi, scale2, polyr, polyi, resr, resi, Wt, etr, eti,
+            bsr, bsi, ok, lane, flag, work, Hsr, Hsi, gsr, gsi, str_, sti, ds,
+            lm_lane, need, weights, col_base, data_index, F, q_basis, pair_kind,
+            pair_a, pair_b, pair_nd, pair_off, ent_ptr, ent_mom, ent_coef,
+            ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef, band_int, den_int,
+            den_map, system_factor, guard_radius, start_system, jump_limit,
+            radius, lm_iterations, tol, lm_history, group, first, count, s_ptr,
+            s_col, s_val,
+        )
+    # Lemma 2 on the problem reweighted by the final estimate (LM: J^H J, the
+    # denominator columns built from yhat)
     _compiled._residual(sr, si, bsr, bsi, weights, col_base, data_index, F,
                         polyr, polyi, resr, resi)
     _denominator(polyr, polyi, den, er, ei)
     for r in range(L):
         for w in range(LANES):
             Wt[r, w] = 1.0 / (er[r, w] ** 2 + ei[r, w] ** 2)
+    if lm_iterations > 0:
+        _hat_series(sr, si, resr, resi, er, ei, F, hr, hi, pair_kind, pair_a,
+                    pair_b, Sar, Sai)
     _weighted_gram(
         Sar, Sai, Wt, Tr, Ti, q_basis, pair_off, pair_nd, Er, Ei, Or, Oi,
         mr, mi, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const, rhs_ptr,
@@ -393,6 +421,233 @@ def _sk_group_py(
                     cvar_out[row, c, d, 1] = np.nan
 
 
+def _hat_series_py(sr, si, resr, resi, er, ei, F, hr, hi, pair_kind, pair_a,
+                   pair_b, Sar, Sai):
+    """Denominator base ``-yhat = -(Y - res / e)`` in ``hr/hi[F]`` (the other
+    bases copied from ``sr/si``) and the pair series that involve it."""
+    P = sr.shape[1]
+    L = sr.shape[2]
+    for f in range(F):
+        for q in range(P):
+            for r in range(L):
+                for w in range(LANES):
+                    hr[f, q, r, w] = sr[f, q, r, w]
+                    hi[f, q, r, w] = si[f, q, r, w]
+    for q in range(P):
+        for r in range(L):
+            for w in range(LANES):
+                inv = 1.0 / (er[r, w] ** 2 + ei[r, w] ** 2)
+                rr = resr[q, r, w]
+                ri = resi[q, r, w]
+                hr[F, q, r, w] = sr[F, q, r, w] + (rr * er[r, w] + ri * ei[r, w]) * inv
+                hi[F, q, r, w] = si[F, q, r, w] + (ri * er[r, w] - rr * ei[r, w]) * inv
+    for t in range(pair_kind.shape[0]):
+        kind = pair_kind[t]
+        a = pair_a[t]
+        b = pair_b[t]
+        uses = (kind == _DATA_DATA_ and (a == F or b == F)) or kind == _DATA_CONST_
+        if uses:
+            _compiled._pair_series(hr, hi, kind, a, b, Sar[t], Sai[t])
+
+
+def _gram_to_layout_py(Hr, Hi, s_ptr, s_col, s_val, Gr, Gi, w):
+    """Packed lower ``S H S^T`` of lane ``w`` into ``Gr/Gi[:, w]`` (``S``
+    real, sparse rows ``s_ptr/s_col/s_val``; ``H`` packed lower Hermitian):
+    the Gram matrix in the layout (monomial) basis, where numpy's LM damps."""
+    p = s_ptr.shape[0] - 1
+    for a in range(p):
+        ra = a * (a + 1) // 2
+        for b in range(a + 1):
+            accr = 0.0
+            acci = 0.0
+            for za in range(s_ptr[a], s_ptr[a + 1]):
+                i = s_col[za]
+                ca = s_val[za]
+                for zb in range(s_ptr[b], s_ptr[b + 1]):
+                    j = s_col[zb]
+                    c = ca * s_val[zb]
+                    if i >= j:
+                        e = i * (i + 1) // 2 + j
+                        accr += c * Hr[e, w]
+                        acci += c * Hi[e, w]
+                    else:
+                        e = j * (j + 1) // 2 + i
+                        accr += c * Hr[e, w]
+                        acci -= c * Hi[e, w]
+            Gr[ra + b, w] = accr
+            Gi[ra + b, w] = acci
+
+
+def _lm_phase_py(
+    sr, si, hr, hi, Sar, Sai, Tr, Ti, Er, Ei, Or, Oi, mr, mi, Hr, Hi,
+    gr, gi, xr, xi, scale2, polyr, polyi, resr, resi, Wt, etr, eti,
+    bsr, bsi, ok, lane, flag, work, Hsr, Hsi, gsr, gsi, str_, sti, ds,
+    lm_lane, need, weights, col_base, data_index, F, q_basis, pair_kind,
+    pair_a, pair_b, pair_nd, pair_off, ent_ptr, ent_mom, ent_coef,
+    ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef, band_int, den_int,
+    den_map, system_factor, guard_radius, start_system, jump_limit,
+    radius, iterations, tol, lm_history, group, first, count, s_ptr, s_col,
+    s_val,
+):
+    """Guarded LM of :func:`lrmfrf.refinement._levenberg_marquardt` from the
+    estimate in ``bsr/bsi`` (cost ``lane[1]``); returns the iterations run.
+    ``lm_lane[0..2]``: damping, start cost, trial cost; ``need[0]``: the
+    Gauss-Newton model must be rebuilt, ``need[1]``: spare. The model is
+    damped in the layout basis (``theta_internal = theta_layout S``), as numpy
+    does: Marquardt's damping is not invariant to a change of basis."""
+    L, p = weights.shape
+    P = sr.shape[1]
+    den = F + P
+    for w in range(LANES):
+        flag[0, w] = not flag[3, w]  # active: not an exact fit
+        flag[1, w] = flag[3, w]  # converged
+        need[0, w] = flag[0, w]
+        lm_lane[0, w] = 1e-3
+        lm_lane[1, w] = lane[1, w]
+        for i in range(p):
+            str_[i, w] = bsr[i, w]
+            sti[i, w] = bsi[i, w]
+    run = 0
+    for it in range(iterations):
+        rebuild = False
+        for w in range(count):
+            rebuild = rebuild or need[0, w]
+        if rebuild:  # equilibrated J^H J, J^H r and the scale at the estimate
+            _compiled._residual(sr, si, bsr, bsi, weights, col_base, data_index,
+                                F, polyr, polyi, resr, resi)
+            _denominator(polyr, polyi, den, etr, eti)
+            for r in range(L):
+                for w in range(LANES):
+                    Wt[r, w] = 1.0 / (etr[r, w] ** 2 + eti[r, w] ** 2)
+            _hat_series(sr, si, resr, resi, etr, eti, F, hr, hi, pair_kind,
+                        pair_a, pair_b, Sar, Sai)
+            _weighted_gram(
+                Sar, Sai, Wt, Tr, Ti, q_basis, pair_off, pair_nd, Er, Ei, Or, Oi,
+                mr, mi, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const, rhs_ptr,
+                rhs_mom, rhs_coef, Hr, Hi, gr, gi,
+            )
+            for q in range(P):
+                for r in range(L):
+                    for w in range(LANES):
+                        resr[q, r, w] *= Wt[r, w]
+                        resi[q, r, w] *= Wt[r, w]
+            _compiled._adjoint(hr, hi, resr, resi, weights, col_base, data_index,
+                               F, polyr, polyi, gr, gi)
+            for w in range(count):
+                if not need[0, w]:
+                    continue
+                _gram_to_layout(Hr, Hi, s_ptr, s_col, s_val, Hsr, Hsi, w)
+                for i in range(p):
+                    d = Hsr[i * (i + 1) // 2 + i, w]
+                    d = np.sqrt(d) if d > 0.0 else 0.0
+                    ds[i, w] = d if d > 0.0 else 1.0
+                for i in range(p):
+                    ri = i * (i + 1) // 2
+                    for j in range(i + 1):
+                        c = 1.0 / (ds[i, w] * ds[j, w])
+                        Hsr[ri + j, w] *= c
+                        Hsi[ri + j, w] *= c
+                    # J^H r = -Ahat^H W res, in the layout basis: S g
+                    accr = 0.0
+                    acci = 0.0
+                    for z in range(s_ptr[i], s_ptr[i + 1]):
+                        accr += s_val[z] * gr[s_col[z], w]
+                        acci += s_val[z] * gi[s_col[z], w]
+                    gsr[i, w] = -accr / ds[i, w]
+                    gsi[i, w] = -acci / ds[i, w]
+        busy = False
+        for w in range(count):
+            busy = busy or flag[0, w]
+        if not busy:
+            break
+        run = it + 1
+        for e in range(Hsr.shape[0]):
+            for w in range(LANES):
+                Hr[e, w] = Hsr[e, w]
+                Hi[e, w] = Hsi[e, w]
+        for i in range(p):
+            ii = i * (i + 1) // 2 + i
+            for w in range(LANES):
+                Hr[ii, w] += lm_lane[0, w]
+                gr[i, w] = -gsr[i, w]
+                gi[i, w] = -gsi[i, w]
+        _compiled._cholesky(Hr, Hi, scale2, ok, 0.0, p)
+        _compiled._chol_solve(Hr, Hi, gr, gi, xr, xi, p)
+        for i in range(p):  # the layout step, scaled back
+            for w in range(LANES):
+                xr[i, w] /= ds[i, w]
+                xi[i, w] /= ds[i, w]
+        for i in range(p):  # internal step S^T step: gr/gi as work space
+            for w in range(LANES):
+                gr[i, w] = bsr[i, w]
+                gi[i, w] = bsi[i, w]
+        for a in range(p):
+            for z in range(s_ptr[a], s_ptr[a + 1]):
+                c = s_val[z]
+                i = s_col[z]
+                for w in range(LANES):
+                    gr[i, w] += c * xr[a, w]
+                    gi[i, w] += c * xi[a, w]
+        for i in range(p):
+            for w in range(LANES):
+                xr[i, w] = gr[i, w]
+                xi[i, w] = gi[i, w]
+        _compiled._residual(sr, si, xr, xi, weights, col_base, data_index, F,
+                            polyr, polyi, resr, resi)
+        _denominator(polyr, polyi, den, etr, eti)
+        for w in range(LANES):
+            cost = 0.0
+            for q in range(P):
+                for r in range(L):
+                    cost += (resr[q, r, w] ** 2 + resi[q, r, w] ** 2) / (
+                        etr[r, w] ** 2 + eti[r, w] ** 2
+                    )
+            lm_lane[2, w] = cost
+        total = 0.0
+        for w in range(count):
+            need[0, w] = False
+            row = first + w
+            if flag[0, w]:
+                cost = lm_lane[2, w]
+                decrease = ok[w] and np.isfinite(cost) and cost < lane[1, w]
+                hit = decrease and _rejected(
+                    xr, xi, w, row, band_int, system_factor, start_system,
+                    jump_limit, den_int, den_map, guard_radius, radius, work,
+                )
+                if hit:  # back to the estimate LM started from, stop
+                    flag[2, w] = True
+                    flag[0, w] = False
+                    lane[1, w] = lm_lane[1, w]
+                    for i in range(p):
+                        bsr[i, w] = str_[i, w]
+                        bsi[i, w] = sti[i, w]
+                if decrease and not hit:
+                    change = (lane[1, w] - cost) / lane[1, w]
+                    lane[1, w] = cost
+                    for i in range(p):
+                        bsr[i, w] = xr[i, w]
+                        bsi[i, w] = xi[i, w]
+                    lm_lane[0, w] = max(lm_lane[0, w] / 10.0, 1e-12)
+                    if change < tol:
+                        flag[0, w] = False
+                        flag[1, w] = True
+                    else:
+                        need[0, w] = True
+                else:
+                    lm_lane[0, w] *= 10.0
+                    if lm_lane[0, w] > 1e12:
+                        flag[0, w] = False
+                        flag[1, w] = True
+            total += lane[1, w]
+        lm_history[group, it] = total
+    for later in range(run, iterations):
+        if run > 0:
+            lm_history[group, later] = lm_history[group, run - 1]
+        else:
+            lm_history[group, later] = np.nan
+    return run
+
+
 if AVAILABLE:  # pragma: no branch
     from numba import njit
 
@@ -402,6 +657,9 @@ if AVAILABLE:  # pragma: no branch
     _denominator = njit(**_opts)(_denominator_py)
     _weighted_gram = njit(**_opts)(_weighted_gram_py)
     _rejected = njit(**_opts)(_rejected_py)
+    _hat_series = njit(**_opts)(_hat_series_py)
+    _gram_to_layout = njit(**_opts)(_gram_to_layout_py)
+    _lm_phase = njit(**_opts)(_lm_phase_py)
     _sk_group = njit(**_opts)(_sk_group_py)
     _sk_range = njit(**_opts)(_sk_range_py)
 else:  # pragma: no cover
@@ -432,6 +690,8 @@ def sk_windows(
     tol: float,
     keep_best: bool,
     exact_tol: float,
+    lm_iterations: int = 0,
+    from_layout: np.ndarray | None = None,
     n_threads: int | None = None,
 ):
     """Sanathanan-Koerner iterations of every window (compiled, threaded).
@@ -463,9 +723,16 @@ def sk_windows(
         ``F`` (the system is ``F`` times the centre value).
     guard_radius : float
     iterations : int
+        SK iterations.
     tol : float
     keep_best : bool
     exact_tol : float
+    lm_iterations : int, default=0
+        Guarded LM iterations after SK (:func:`lrmfrf.refinement.
+        _levenberg_marquardt`); ``centre_cov`` is then ``(J^H J)^-1``.
+    from_layout : ndarray of shape (p, p), optional
+        Real ``S`` with ``theta_internal = theta_layout @ S`` (LM damps in the
+        layout basis); needed with ``lm_iterations``.
     n_threads : int, optional
 
     Returns
@@ -480,6 +747,8 @@ def sk_windows(
         final estimate.
     sk_sums, oe_sums : ndarray of shape (n_run + 1,)
         Sums over the windows of the SK cost and of ``J_LS`` per iteration.
+    lm_sums : ndarray of shape (n_lm_run,)
+        Sums of ``J_LS`` after each LM iteration run.
     """
     B, p = theta0.shape
     t = tables
@@ -490,6 +759,8 @@ def sk_windows(
     n_groups = (B + LANES - 1) // LANES
     history = np.zeros((n_groups, iterations + 1, 2))
     n_run = np.zeros(n_groups, dtype=np.int64)
+    lm_history = np.zeros((n_groups, lm_iterations))
+    n_run_lm = np.zeros(n_groups, dtype=np.int64)
     as_ri = lambda z: np.ascontiguousarray(  # noqa: E731
         np.asarray(z, dtype=np.complex128)).view(np.float64).reshape(*z.shape, 2)
     args = (
@@ -509,9 +780,10 @@ def sk_windows(
         np.ascontiguousarray(den_map, dtype=np.float64).reshape(
             len(den_int), len(den_int)
         ),
-        float(system_factor), float(guard_radius), int(iterations), float(tol),
-        bool(keep_best), float(exact_tol), theta_out, cost, flags, cvar,
-        history, n_run,
+        float(system_factor), float(guard_radius), int(iterations),
+        int(lm_iterations), float(tol), bool(keep_best), float(exact_tol),
+        theta_out, cost, flags, cvar, history, n_run, lm_history, n_run_lm,
+        *_sparse_rows(np.eye(p) if from_layout is None else from_layout),
     )
     tasks = [
         (start, min(n_groups, start + _GROUPS_PER_TASK))
@@ -527,8 +799,21 @@ def sk_windows(
             list(pool.map(lambda task: _sk_range(*args, *task), tasks))
     n = int(n_run.max(initial=0))
     sums = history[:, : n + 1].sum(axis=0)
+    n_lm = int(n_run_lm.max(initial=0))
+    # a group whose LM stopped before running keeps its SK cost sum
+    lm = np.where(np.isnan(lm_history), history[:, -1:, 1], lm_history)
     return (
         theta_out.view(np.complex128)[..., 0], cost, flags[:, 0].copy(),
         flags[:, 1].copy(), cvar.view(np.complex128)[..., 0], sums[:, 0],
-        sums[:, 1],
+        sums[:, 1], lm[:, :n_lm].sum(axis=0),
+    )
+
+
+def _sparse_rows(matrix: np.ndarray):
+    """Row pointers, columns and values of the nonzeros of a real matrix."""
+    rows, cols = np.nonzero(matrix)
+    ptr = np.searchsorted(rows, np.arange(matrix.shape[0] + 1))
+    return (
+        ptr.astype(np.int64), cols.astype(np.int64),
+        np.ascontiguousarray(matrix[rows, cols], dtype=np.float64),
     )

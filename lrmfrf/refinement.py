@@ -280,8 +280,9 @@ def refine_local_models(
         ``"numba"``: SK in the compiled kernel (:mod:`lrmfrf._compiled_refine`,
         the window moments reweighted per iteration, no regressor formed);
         ``"numpy"``: array operations on the regressors of chunks of windows.
-        ``"auto"`` chooses as :func:`lrmfrf.solvers.resolve_backend`. LM
-        iterations always use the numpy path (after a compiled SK). Both give
+        ``"auto"`` chooses as :func:`lrmfrf.solvers.resolve_backend` (SK and
+        LM alike; the compiled LM builds ``J^H J`` from the moments too, with
+        the denominator pair series from ``yhat``). Both give
         the same results up to round-off, except on windows where a guard
         decision sits on its threshold.
 
@@ -391,11 +392,13 @@ def _refine(
     if jump is not None:
         jump_limit = jump * np.nan_to_num(np.sqrt(local_fit.system_var), nan=np.inf)
     n_ok = int(np.count_nonzero(local_fit.well_posed))
-    backend = resolve_backend(backend, n_ok * max(sk_iterations, 1), layout.n_params)
-    if backend == "numba" and sk_iterations and not lm_iterations:
+    work = n_ok * max(sk_iterations + lm_iterations, 1)
+    backend = resolve_backend(backend, work, layout.n_params)
+    if backend == "numba" and (sk_iterations or lm_iterations):
         return _refine_compiled(
-            U, Y, layout, local_fit, sk_iterations=sk_iterations, tol=tol,
-            guard_radius=guard_radius, jump_limit=jump_limit, keep_best=keep_best,
+            U, Y, layout, local_fit, sk_iterations=sk_iterations,
+            lm_iterations=lm_iterations, tol=tol, guard_radius=guard_radius,
+            jump_limit=jump_limit, keep_best=keep_best,
         )
 
     theta = local_fit.theta.copy()
@@ -798,10 +801,10 @@ def _refined_fit(local_fit, layout, theta, cost, gram, lead) -> LocalModelFit:
 
 
 def _refine_compiled(
-    U, Y, layout, local_fit, *, sk_iterations, tol, guard_radius, jump_limit,
-    keep_best,
+    U, Y, layout, local_fit, *, sk_iterations, lm_iterations, tol, guard_radius,
+    jump_limit, keep_best,
 ) -> RefinementResult:
-    """SK through the compiled kernel (:func:`lrmfrf._compiled_refine.
+    """SK and LM through the compiled kernel (:func:`lrmfrf._compiled_refine.
     sk_windows`); the same results as the numpy path of :func:`_refine`."""
     nb, P = layout.n_bands, layout.n_experiments
     ok = np.flatnonzero(local_fit.well_posed)
@@ -817,7 +820,7 @@ def _refine_compiled(
         start_root[check] = denominator_roots(local_fit.theta[ok][check], layout)
     radius = np.minimum(guard_radius, start_root)
     radius[np.isnan(radius)] = 0.0
-    theta_int, cost_ok, conv_ok, guard_ok, cov, sk_sums, oe_sums = (
+    theta_int, cost_ok, conv_ok, guard_ok, cov, sk_sums, oe_sums, lm_sums = (
         _compiled_refine.sk_windows(
             U.reshape(P, layout.n_inputs, -1), Y, local_fit.slow_bins[ok], theta0,
             local_fit.rss[ok], local_fit.system[ok], jump_limit[ok], radius,
@@ -826,6 +829,7 @@ def _refine_compiled(
             den_int=sk["den_int"], den_map=sk["den_map"], system_factor=layout.F,
             guard_radius=guard_radius, iterations=sk_iterations, tol=tol,
             keep_best=keep_best, exact_tol=EXACT_FIT_TOL,
+            lm_iterations=lm_iterations, from_layout=sk["from_layout"],
         )
     )
     theta = local_fit.theta.copy()
@@ -840,18 +844,19 @@ def _refine_compiled(
     gram[ok, :nb] = np.real(np.diagonal(cov[:, :nb, :nb], axis1=1, axis2=2))
     lead = np.full((B, nb, nb), np.nan, dtype=complex)
     lead[ok] = cov[:, :nb, :nb]
-    n_sk = sk_sums.size - 1
-    cost_history = oe_sums / n_ok
+    n_sk, n_lm = sk_sums.size - 1, lm_sums.size
+    cost_history = np.concatenate([oe_sums, lm_sums]) / n_ok
     return RefinementResult(
         local_fit=_refined_fit(local_fit, layout, theta, cost, gram, lead),
         cost_history=cost_history,
         sk_cost_history=sk_sums / n_ok,
         sk_iterations=n_sk,
-        lm_iterations=0,
+        lm_iterations=n_lm,
         guarded=guarded,
         converged=converged,
         stopped_far=(
-            n_sk == sk_iterations and _still_dropping(cost_history, tol), False
+            n_sk == sk_iterations and _still_dropping(cost_history[: n_sk + 1], tol),
+            n_lm == lm_iterations and _still_dropping(cost_history[n_sk:], tol),
         ),
     )
 

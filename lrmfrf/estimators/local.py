@@ -137,6 +137,7 @@ class _LocalModelEstimator(_BaseFRFEstimator):
             Y_o = Y[:, o, :]
             local_fit = fit_local_models(U, Y_o, layout, return_cov=True)
             fits.append(self._refine(U, Y_o, layout, local_fit, params, y_exponent))
+        del self._refined_rows
         self._set_fitted(
             fits, layout, N, M, F, P, sample_time, u_exponent, y_exponent
         )
