@@ -4,8 +4,8 @@ SDynPy (Sandia, GPL-3) is an optional benchmark dependency only: the package
 never imports it. Install it in a separate virtual environment together with
 this package, e.g.::
 
-    python -m venv /tmp/venv-sdynpy
-    /tmp/venv-sdynpy/bin/pip install sdynpy -e ".[fast]"
+    python -m venv /tmp/venv-sdynpy  # SDynPy's LRM also needs psutil, joblib
+    /tmp/venv-sdynpy/bin/pip install sdynpy psutil joblib -e ".[fast]"
     QT_QPA_PLATFORM=offscreen /tmp/venv-sdynpy/bin/python \
         benchmarks/sdynpy_comparison.py
 
