@@ -6,8 +6,12 @@ this package, e.g.::
 
     python -m venv /tmp/venv-sdynpy  # SDynPy's LRM also needs psutil, joblib
     /tmp/venv-sdynpy/bin/pip install sdynpy psutil joblib -e ".[fast]"
+    /tmp/venv-sdynpy/bin/pip install "numpy<2" "pandas<2.3"
     QT_QPA_PLATFORM=offscreen /tmp/venv-sdynpy/bin/python \
         benchmarks/sdynpy_comparison.py
+
+(the SDynPy release of 2026-11 fails in its LRM band parsing with numpy 2:
+``TypeError: 'numpy.bool' object cannot be interpreted as an integer``).
 
 Data: white-noise input (not periodic: the transient is estimated by both)
 through the lightly damped wafer stage ``G_y4`` of :mod:`lrmfrf.plants` at the
