@@ -119,6 +119,8 @@ def _sk_scratch_py(F, P, L, p, n_moments, n_centre, n_pairs, n_den):
         np.empty((p, LANES), f64), np.empty((p, LANES), f64),
         np.empty((p, LANES), f64), np.empty((3, LANES), f64),
         np.empty((2, LANES), np.bool_),
+        np.empty((p * (p + 1) // 2, LANES), f64),
+        np.empty((p * (p + 1) // 2, LANES), f64),
     )
 
 
@@ -234,7 +236,7 @@ def _sk_group_py(
     (sr, si, Sar, Sai, Tr, Ti, Er, Ei, Or, Oi, mr, mi, Hr, Hi, gr, gi, xr, xi,
      dr, di, scale2, polyr, polyi, resr, resi, Wt, er, ei, etr, eti, thr, thi,
      bsr, bsi, ok, k, lane, flag, tr, ti, work, hr, hi, Hsr, Hsi, gsr, gsi,
-     str_, sti, ds, lm_lane, need) = s
+     str_, sti, ds, lm_lane, need, Gtr, Gti) = s
     # lane[0..5]: trajectory cost, best cost, SK cost, trial cost, trial rss,
     # |b|^2; flag[0..3]: active, converged, guarded, exact
     L, p = weights.shape
@@ -379,7 +381,8 @@ def _sk_group_py(
             sr, si, hr, hi, Sar, Sai, Tr, Ti, Er, Ei, Or, Oi, mr, mi, Hr, Hi,
             gr, gi, xr, xi, scale2, polyr, polyi, resr, resi, Wt, etr, eti,
             bsr, bsi, ok, lane, flag, work, Hsr, Hsi, gsr, gsi, str_, sti, ds,
-            lm_lane, need, weights, col_base, data_index, F, q_basis, pair_kind,
+            lm_lane, need, Gtr, Gti, weights, col_base, data_index, F, q_basis,
+            pair_kind,
             pair_a, pair_b, pair_nd, pair_off, ent_ptr, ent_mom, ent_coef,
             ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef, band_int, den_int,
             den_map, system_factor, guard_radius, start_system, jump_limit,
@@ -450,16 +453,17 @@ def _hat_series_py(sr, si, resr, resi, er, ei, F, hr, hi, pair_kind, pair_a,
             _compiled._pair_series(hr, hi, kind, a, b, Sar[t], Sai[t])
 
 
-def _gram_to_layout_py(Hr, Hi, s_ptr, s_col, s_val, Gr, Gi, w):
-    """Packed lower ``S H S^T`` of lane ``w`` into ``Gr/Gi[:, w]`` (``S``
-    real, sparse rows ``s_ptr/s_col/s_val``; ``H`` packed lower Hermitian):
-    the Gram matrix in the layout (monomial) basis, where numpy's LM damps."""
+def _gram_to_layout_py(Hr, Hi, s_ptr, s_col, s_val, Gr, Gi):
+    """Packed lower ``S H S^T`` of every lane into ``Gr/Gi`` (``S`` real,
+    sparse rows ``s_ptr/s_col/s_val``; ``H`` packed lower Hermitian): the
+    Gram matrix in the layout (monomial) basis, where numpy's LM damps."""
     p = s_ptr.shape[0] - 1
     for a in range(p):
         ra = a * (a + 1) // 2
         for b in range(a + 1):
-            accr = 0.0
-            acci = 0.0
+            for w in range(LANES):
+                Gr[ra + b, w] = 0.0
+                Gi[ra + b, w] = 0.0
             for za in range(s_ptr[a], s_ptr[a + 1]):
                 i = s_col[za]
                 ca = s_val[za]
@@ -468,21 +472,22 @@ def _gram_to_layout_py(Hr, Hi, s_ptr, s_col, s_val, Gr, Gi, w):
                     c = ca * s_val[zb]
                     if i >= j:
                         e = i * (i + 1) // 2 + j
-                        accr += c * Hr[e, w]
-                        acci += c * Hi[e, w]
+                        for w in range(LANES):
+                            Gr[ra + b, w] += c * Hr[e, w]
+                            Gi[ra + b, w] += c * Hi[e, w]
                     else:
                         e = j * (j + 1) // 2 + i
-                        accr += c * Hr[e, w]
-                        acci -= c * Hi[e, w]
-            Gr[ra + b, w] = accr
-            Gi[ra + b, w] = acci
+                        for w in range(LANES):
+                            Gr[ra + b, w] += c * Hr[e, w]
+                            Gi[ra + b, w] -= c * Hi[e, w]
 
 
 def _lm_phase_py(
     sr, si, hr, hi, Sar, Sai, Tr, Ti, Er, Ei, Or, Oi, mr, mi, Hr, Hi,
     gr, gi, xr, xi, scale2, polyr, polyi, resr, resi, Wt, etr, eti,
     bsr, bsi, ok, lane, flag, work, Hsr, Hsi, gsr, gsi, str_, sti, ds,
-    lm_lane, need, weights, col_base, data_index, F, q_basis, pair_kind,
+    lm_lane, need, Gtr, Gti, weights, col_base, data_index, F, q_basis,
+    pair_kind,
     pair_a, pair_b, pair_nd, pair_off, ent_ptr, ent_mom, ent_coef,
     ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef, band_int, den_int,
     den_map, system_factor, guard_radius, start_system, jump_limit,
@@ -533,20 +538,20 @@ def _lm_phase_py(
                         resi[q, r, w] *= Wt[r, w]
             _compiled._adjoint(hr, hi, resr, resi, weights, col_base, data_index,
                                F, polyr, polyi, gr, gi)
+            _gram_to_layout(Hr, Hi, s_ptr, s_col, s_val, Gtr, Gti)
             for w in range(count):
                 if not need[0, w]:
                     continue
-                _gram_to_layout(Hr, Hi, s_ptr, s_col, s_val, Hsr, Hsi, w)
                 for i in range(p):
-                    d = Hsr[i * (i + 1) // 2 + i, w]
+                    d = Gtr[i * (i + 1) // 2 + i, w]
                     d = np.sqrt(d) if d > 0.0 else 0.0
                     ds[i, w] = d if d > 0.0 else 1.0
                 for i in range(p):
                     ri = i * (i + 1) // 2
                     for j in range(i + 1):
                         c = 1.0 / (ds[i, w] * ds[j, w])
-                        Hsr[ri + j, w] *= c
-                        Hsi[ri + j, w] *= c
+                        Hsr[ri + j, w] = Gtr[ri + j, w] * c
+                        Hsi[ri + j, w] = Gti[ri + j, w] * c
                     # J^H r = -Ahat^H W res, in the layout basis: S g
                     accr = 0.0
                     acci = 0.0
