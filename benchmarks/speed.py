@@ -29,6 +29,13 @@ keep 10 residual degrees of freedom when ``F`` needs it), and ``LRM 2x2 P=2``
 process (best of 3 each after a warm-up); the summary prints the ratio
 (target <= 6x). ``--mimo-only`` runs just that case.
 
+``LRM SK10/closed`` (issue 14): ``LRMBeyondNyquist(sk_iterations=10)`` and
+the closed form ``LRMBeyondNyquist()`` on the same ``N = 1.2e6``, F = 3 data
+in one process, best of 3 each after a warm-up (JIT, caches); the summary
+prints the ratio (target <= 12x); ``LRM LM50/closed`` likewise with
+``lm_iterations=50`` (target <= 30x). ``--sk-only`` runs just those two cases
+(``--quick``: at N = 1.2e5).
+
 Run::
 
     python benchmarks/speed.py            # N up to 1.2e6, about 2-4 minutes
@@ -178,6 +185,10 @@ def run_case(method: str, n_samples: int, F: int) -> dict:
         _ = s_yu / s_uu
     elif method == "LRM 2x2 P=2":
         out.update(_mimo_vs_siso(u, y, n_samples, F))
+    elif method == "LRM SK10/closed":
+        out.update(_refined_vs_closed(u, y, F, n, sk_iterations=10))
+    elif method == "LRM LM50/closed":
+        out.update(_refined_vs_closed(u, y, F, n, lm_iterations=50))
     elif method == "LRM loop":
         elapsed, cpu = _per_bin_loop(u, y, F, n)
         out.update(fit_s=elapsed * (M // 2 + 1), cpu_s=cpu * (M // 2 + 1))
@@ -231,6 +242,26 @@ def _mimo_vs_siso(u, y, n_samples, F, repeats: int = 3) -> dict:
     siso, mimo = best(u, y), best(u2, y2)
     return {"fit_s": mimo, "cpu_s": math.nan, "siso_s": siso,
             "mimo_ratio": mimo / siso}
+
+
+def _refined_vs_closed(u, y, F, n, repeats: int = 3, **refinement) -> dict:
+    """Best-of wall times of a refined fit and of the closed form, one process."""
+    from lrmfrf import LRMBeyondNyquist
+
+    warnings.simplefilter("ignore")  # ConvergenceWarning at ten iterations
+    LRMBeyondNyquist(half_window=n, **refinement).fit(u[: 3000 * F], y[:3000], F)
+
+    def best(**params):
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            LRMBeyondNyquist(half_window=n, **params).fit(u, y, F)
+            times.append(time.perf_counter() - t0)
+        return min(times)
+
+    closed, refined = best(), best(**refinement)
+    return {"fit_s": refined, "cpu_s": math.nan, "closed_s": closed,
+            "refined_ratio": refined / closed}
 
 
 def _per_bin_loop(u, y, F, n) -> tuple[float, float]:
@@ -294,6 +325,8 @@ def cases(args) -> list[tuple[str, int, int]]:
         out += [(m, 12_000_000, 3) for m in ("LRM", "LPM", "SA", "scipy csd")]
     out += [("LRM", 120_000, F) for F in (2, 5, 10)]
     out.append(("LRM 2x2 P=2", 120_000, 3))
+    big = 120_000 if args.quick else 1_200_000
+    out += [("LRM SK10/closed", big, 3), ("LRM LM50/closed", big, 3)]
     return out
 
 
@@ -390,6 +423,10 @@ def main(argv=None) -> None:
         "--mimo-only", action="store_true",
         help="only the 2x2, P = 2 vs SISO ratio at N = 1.2e5 (issue 13)",
     )
+    parser.add_argument(
+        "--sk-only", action="store_true",
+        help="only the SK10 vs closed-form ratio at N = 1.2e6 (issue 14)",
+    )
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
@@ -398,6 +435,9 @@ def main(argv=None) -> None:
         return
     rows = []
     selected = [("LRM 2x2 P=2", 120_000, 3)] if args.mimo_only else cases(args)
+    if args.sk_only:
+        big = 120_000 if args.quick else 1_200_000
+        selected = [("LRM SK10/closed", big, 3), ("LRM LM50/closed", big, 3)]
     for method, N, F in selected:
         row = run_child(method, N, F, args.backend)
         rows.append(row)
@@ -411,6 +451,8 @@ def main(argv=None) -> None:
     name = "speed_backends.csv" if args.backend == "both" else "speed.csv"
     if args.mimo_only:
         name = "speed_mimo.csv"
+    if args.sk_only:
+        name = "speed_sk.csv"
     with open(RESULTS / name, "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
         writer.writeheader()
@@ -418,7 +460,7 @@ def main(argv=None) -> None:
     print(f"Data: {rows[0].get('data', '?')}; {os.cpu_count()} CPUs.\n")
     print(markdown(rows))
     print()
-    if not args.mimo_only:
+    if not (args.mimo_only or args.sk_only):
         print(summary(rows))
     for row in rows:
         if "mimo_ratio" in row:
@@ -426,6 +468,15 @@ def main(argv=None) -> None:
                 f"\nMIMO: 2x2 LRM fit of P = 2 experiments of N = {row['N']} took "
                 f"{row['fit_s']:.3f} s, {row['mimo_ratio']:.2f}x the SISO fit of one "
                 f"record ({row['siso_s']:.3f} s) in the same process (target <= 6x)."
+            )
+        if "refined_ratio" in row:
+            sk = row["method"].startswith("LRM SK10")
+            name = "sk_iterations=10" if sk else "lm_iterations=50"
+            print(
+                f"\n{row['method']}: LRMBeyondNyquist({name}) at N = {row['N']} "
+                f"took {row['fit_s']:.3f} s, {row['refined_ratio']:.1f}x the closed "
+                f"form ({row['closed_s']:.3f} s) in the same process (target <= "
+                f"{12 if sk else 30}x)."
             )
 
 

@@ -65,7 +65,7 @@ LANES = 96
 _GROUPS_PER_TASK = 8
 
 #: Pair kinds of the moment tables.
-_DATA_DATA, _CONST_DATA, _DATA_CONST = 0, 1, 2
+_DATA_DATA, _CONST_DATA, _DATA_CONST, _ONES = 0, 1, 2, 3
 
 
 # ---------------------------------------------------------------------------
@@ -73,7 +73,10 @@ _DATA_DATA, _CONST_DATA, _DATA_CONST = 0, 1, 2
 # ---------------------------------------------------------------------------
 
 
-def moment_tables(weights: np.ndarray, col_base: np.ndarray, F: int, P: int) -> dict:
+def moment_tables(
+    weights: np.ndarray, col_base: np.ndarray, F: int, P: int, *,
+    weighted: bool = False,
+) -> dict:
     """Per-layout tables of the moment form of the normal equations.
 
     Parameters
@@ -86,6 +89,10 @@ def moment_tables(weights: np.ndarray, col_base: np.ndarray, F: int, P: int) -> 
         ``F + q`` the transient constant of experiment ``q``, ``F + P`` the
         sequence ``-Y``.
     F, P : int
+    weighted : bool, default=False
+        Tables for row-weighted problems (Sanathanan-Koerner): the
+        transient-transient block is then no constant but a moment of the
+        weight itself, a pair of kind ``_ONES`` (series 1) added last.
 
     Returns
     -------
@@ -144,6 +151,16 @@ def moment_tables(weights: np.ndarray, col_base: np.ndarray, F: int, P: int) -> 
             poff.append(offset)
             offset += nd
 
+    if weighted:  # the weight's own moments: the transient-transient block
+        kind.append(_ONES)
+        pa.append(0)
+        pb.append(0)
+        nd = int(min(L, 2 * top[F:F + P].max() + 1))
+        pairs["ones"] = (len(kind) - 1, offset, nd)
+        pnd.append(nd)
+        poff.append(offset)
+        offset += nd
+
     ent_ptr, ent_mom, ent_coef, ent_conj, ent_const = [0], [], [], [], []
     for i in range(p):
         for j in range(i + 1):
@@ -151,12 +168,15 @@ def moment_tables(weights: np.ndarray, col_base: np.ndarray, F: int, P: int) -> 
             product = weights[:, i] * weights[:, j]
             lo, hi = max(a, b), min(a, b)
             ent_conj.append(a < b)
-            if (lo, hi) not in pairs:  # both transient constants
-                ent_const.append(product.sum() if a == b else 0.0)
-                ent_ptr.append(len(ent_mom))
-                continue
+            key = (lo, hi)
+            if key not in pairs:  # both transient constants
+                if not weighted or a != b:
+                    ent_const.append(product.sum() if a == b else 0.0)
+                    ent_ptr.append(len(ent_mom))
+                    continue
+                key = "ones"
             ent_const.append(0.0)
-            _, off, nd = pairs[(lo, hi)]
+            _, off, nd = pairs[key]
             coef = _expand(q_basis[:, :nd], product)
             keep = np.flatnonzero(coef)
             ent_mom += list(off + keep)
@@ -286,17 +306,93 @@ def _lane_group(
     ``theta``, ``rss``, ``cvar`` and ``fast``; steps 1-7 below."""
     (sr, si, Sr, Si, Er, Ei, Or, Oi, mr, mi, Hr, Hi, gr, gi, xr, xi, dr, di,
      scale2, polyr, polyi, resr, resi, ok, change_num, change_den, k, tr, ti) = s
-    P = U.shape[0]
-    N = U.shape[2] // 2
-    M = Y.shape[1] // 2
-    fold = N // M  # the downsampling factor; band f is input f // fold
     L, p = weights.shape
     n = L // 2
     B = bins.shape[0]
     for w in range(LANES):
         k[w] = bins[min(first + w, B - 1)]
-    # 1. window data: input bands 0..F-1 and -Y (data index F); band f is
-    # input f // fold at fast bin j + (f % fold) M (lrmfrf.windows.band_indices)
+    # 1. window data
+    _gather(U, Y, k, F, n, sr, si)
+    # 2. moments of the pair series, by parity
+    for t in range(pair_kind.shape[0]):
+        _pair_series(sr, si, pair_kind[t], pair_a[t], pair_b[t], Sr, Si)
+        _moments(Sr, Si, q_basis, pair_off[t], pair_nd[t], Er, Ei, Or, Oi, mr, mi)
+    # 3. Gram (packed lower, internal order) and A^H b from the moments
+    _gram(mr, mi, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const, rhs_ptr,
+          rhs_mom, rhs_coef, Hr, Hi, gr, gi)
+    # 4. Cholesky with the equilibrated pivot check (van der Sluis)
+    _cholesky(Hr, Hi, scale2, ok, fallback_tol * fallback_tol, p)
+    # 5. solve, then refine with the explicit residual
+    _chol_solve(Hr, Hi, gr, gi, xr, xi, p)
+    for w in range(LANES):
+        change_num[w] = 0.0
+        change_den[w] = 0.0
+    for step in range(refine_steps + 1):
+        _residual(
+            sr, si, xr, xi, weights, col_base, data_index, F, polyr, polyi,
+            resr, resi,
+        )
+        if step == refine_steps:
+            break
+        _adjoint(sr, si, resr, resi, weights, col_base, data_index, F,
+                 polyr, polyi, gr, gi)
+        _chol_solve(Hr, Hi, gr, gi, dr, di, p)
+        for w in range(LANES):
+            change_num[w] = 0.0
+            change_den[w] = 0.0
+        for i in range(p):
+            for w in range(LANES):
+                change_num[w] += scale2[i, w] * (dr[i, w] ** 2 + di[i, w] ** 2)
+                change_den[w] += scale2[i, w] * (xr[i, w] ** 2 + xi[i, w] ** 2)
+                xr[i, w] += dr[i, w]
+                xi[i, w] += di[i, w]
+    # 6. diag of (L L^H)^-1 at the trailing columns: inverse of the tail of L
+    _tail_inverse(Hr, Hi, n_centre, p, tr, ti)
+    # 7. outputs of the real lanes (parameters mapped by ``to_layout``)
+    _to_layout(xr, xi, to_layout, dr, di)
+    for w in range(LANES):
+        row = first + w
+        if row >= B:
+            break
+        total = 0.0
+        for q in range(resr.shape[0]):
+            for r in range(L):
+                total += resr[q, r, w] ** 2 + resi[q, r, w] ** 2
+        refined = refine_steps == 0 or (
+            change_num[w] <= refine_tol * refine_tol * change_den[w]
+        )
+        if ok[w]:
+            for j in range(p):
+                theta[row, j, 0] = dr[j, w]
+                theta[row, j, 1] = di[j, w]
+            rss[row] = total
+            _write_tail_cov(tr, ti, w, cvar, row)
+            fast[row] = refined
+        else:
+            for i in range(p):
+                theta[row, i, 0] = np.nan
+                theta[row, i, 1] = np.nan
+            rss[row] = np.nan
+            for c in range(n_centre):
+                for d in range(n_centre):
+                    cvar[row, c, d, 0] = np.nan
+                    cvar[row, c, d, 1] = np.nan
+            fast[row] = False
+
+
+# steps of a lane group (each loops over the lanes innermost)
+
+
+def _gather_py(U, Y, k, F, n, sr, si):
+    """Window data of the lanes centred at ``k``: ``sr/si[f, q, r, w]`` the
+    input bands ``f < F`` and ``-Y`` (``f = F``); band ``f`` is input ``f //
+    fold`` at fast bin ``j + (f % fold) M`` (:func:`lrmfrf.windows.
+    band_indices`), ``fold = N // M`` the downsampling factor."""
+    P = U.shape[0]
+    N = U.shape[2] // 2
+    M = Y.shape[1] // 2
+    fold = N // M
+    L = 2 * n + 1
     for q in range(P):
         for r in range(L):
             for w in range(LANES):
@@ -308,63 +404,78 @@ def _lane_group(
                 jm = 2 * (j % M)
                 sr[F, q, r, w] = -Y[q, jm]
                 si[F, q, r, w] = -Y[q, jm + 1]
-    # 2. moments of the pair series, by parity
-    for t in range(pair_kind.shape[0]):
-        a = pair_a[t]
-        b = pair_b[t]
-        kind = pair_kind[t]
+
+
+def _pair_series_py(sr, si, kind, a, b, Sr, Si):
+    """Pair series ``S_ab(r) = sum_q conj(s_a) s_b`` (or a data sequence
+    against a transient constant, or ones) of one table pair."""
+    P = sr.shape[1]
+    L = sr.shape[2]
+    for r in range(L):
+        for w in range(LANES):
+            Sr[r, w] = 0.0
+            Si[r, w] = 0.0
+    if kind == _DATA_DATA:
+        for q in range(P):
+            for r in range(L):
+                for w in range(LANES):
+                    ar = sr[a, q, r, w]
+                    ai = si[a, q, r, w]
+                    br = sr[b, q, r, w]
+                    bi = si[b, q, r, w]
+                    Sr[r, w] += ar * br + ai * bi
+                    Si[r, w] += ar * bi - ai * br
+    elif kind == _CONST_DATA:
         for r in range(L):
             for w in range(LANES):
-                Sr[r, w] = 0.0
-                Si[r, w] = 0.0
-        if kind == _DATA_DATA:
-            for q in range(P):
-                for r in range(L):
-                    for w in range(LANES):
-                        ar = sr[a, q, r, w]
-                        ai = si[a, q, r, w]
-                        br = sr[b, q, r, w]
-                        bi = si[b, q, r, w]
-                        Sr[r, w] += ar * br + ai * bi
-                        Si[r, w] += ar * bi - ai * br
-        elif kind == _CONST_DATA:
-            for r in range(L):
-                for w in range(LANES):
-                    Sr[r, w] = sr[b, a, r, w]
-                    Si[r, w] = si[b, a, r, w]
-        else:
-            for r in range(L):
-                for w in range(LANES):
-                    Sr[r, w] = sr[a, b, r, w]
-                    Si[r, w] = -si[a, b, r, w]
-        for h in range(1, n + 1):
+                Sr[r, w] = sr[b, a, r, w]
+                Si[r, w] = si[b, a, r, w]
+    elif kind == _DATA_CONST:
+        for r in range(L):
             for w in range(LANES):
-                Er[h, w] = Sr[n + h, w] + Sr[n - h, w]
-                Ei[h, w] = Si[n + h, w] + Si[n - h, w]
-                Or[h, w] = Sr[n + h, w] - Sr[n - h, w]
-                Oi[h, w] = Si[n + h, w] - Si[n - h, w]
-        off = pair_off[t]
-        for d in range(pair_nd[t]):
-            if d % 2 == 0:
-                c0 = q_basis[n, d]
+                Sr[r, w] = sr[a, b, r, w]
+                Si[r, w] = -si[a, b, r, w]
+    else:  # _ONES: the transient-transient series (weighted tables only)
+        for r in range(L):
+            for w in range(LANES):
+                Sr[r, w] = 1.0
+
+
+def _moments_py(Sr, Si, q_basis, off, nd, Er, Ei, Or, Oi, mr, mi):
+    """``m[off+d] = sum_r q_d(r) S(r)``, ``d < nd``, by parity: even ``q_d``
+    see ``S(r) + S(-r)``, odd ones ``S(r) - S(-r)``, ``r > 0``."""
+    n = Sr.shape[0] // 2
+    for h in range(1, n + 1):
+        for w in range(LANES):
+            Er[h, w] = Sr[n + h, w] + Sr[n - h, w]
+            Ei[h, w] = Si[n + h, w] + Si[n - h, w]
+            Or[h, w] = Sr[n + h, w] - Sr[n - h, w]
+            Oi[h, w] = Si[n + h, w] - Si[n - h, w]
+    for d in range(nd):
+        if d % 2 == 0:
+            c0 = q_basis[n, d]
+            for w in range(LANES):
+                mr[off + d, w] = c0 * Sr[n, w]
+                mi[off + d, w] = c0 * Si[n, w]
+            for h in range(1, n + 1):
+                c = q_basis[n + h, d]
                 for w in range(LANES):
-                    mr[off + d, w] = c0 * Sr[n, w]
-                    mi[off + d, w] = c0 * Si[n, w]
-                for h in range(1, n + 1):
-                    c = q_basis[n + h, d]
-                    for w in range(LANES):
-                        mr[off + d, w] += c * Er[h, w]
-                        mi[off + d, w] += c * Ei[h, w]
-            else:
+                    mr[off + d, w] += c * Er[h, w]
+                    mi[off + d, w] += c * Ei[h, w]
+        else:
+            for w in range(LANES):
+                mr[off + d, w] = 0.0
+                mi[off + d, w] = 0.0
+            for h in range(1, n + 1):
+                c = q_basis[n + h, d]
                 for w in range(LANES):
-                    mr[off + d, w] = 0.0
-                    mi[off + d, w] = 0.0
-                for h in range(1, n + 1):
-                    c = q_basis[n + h, d]
-                    for w in range(LANES):
-                        mr[off + d, w] += c * Or[h, w]
-                        mi[off + d, w] += c * Oi[h, w]
-    # 3. Gram (packed lower, internal order) and A^H b from the moments
+                    mr[off + d, w] += c * Or[h, w]
+                    mi[off + d, w] += c * Oi[h, w]
+
+
+def _gram_py(mr, mi, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const, rhs_ptr,
+             rhs_mom, rhs_coef, Hr, Hi, gr, gi):
+    """Packed lower Gram ``Hr/Hi`` and ``A^H b`` (``gr/gi``) from the moments."""
     for e in range(ent_const.shape[0]):
         c0 = ent_const[e]
         for w in range(LANES):
@@ -379,7 +490,7 @@ def _lane_group(
         if ent_conj[e]:
             for w in range(LANES):
                 Hi[e, w] = -Hi[e, w]
-    for i in range(p):
+    for i in range(rhs_ptr.shape[0] - 1):
         for w in range(LANES):
             gr[i, w] = 0.0
             gi[i, w] = 0.0
@@ -389,7 +500,16 @@ def _lane_group(
             for w in range(LANES):
                 gr[i, w] -= c * mr[m, w]
                 gi[i, w] += c * mi[m, w]
-    # 4. Cholesky with the equilibrated pivot check (van der Sluis)
+
+
+def _cholesky_py(Hr, Hi, scale2, ok, tol2, p):
+    """In-place packed Cholesky ``L`` of every lane, inverse pivots kept in
+    ``Hi`` at the diagonal; ``ok[w]`` False where an equilibrated squared
+    pivot ``L_jj^2 / G_jj`` is not above ``tol2`` (van der Sluis).
+
+    Left-looking (column m from the finished columns 0..m-1, dot-product
+    form): each step writes one entry, which stays in L1, instead of the
+    whole trailing matrix (measured 30 % faster than right-looking)."""
     for w in range(LANES):
         ok[w] = True
     for j in range(p):
@@ -397,10 +517,6 @@ def _lane_group(
         for w in range(LANES):
             scale2[j, w] = abs(Hr[jj, w])
             ok[w] = ok[w] and scale2[j, w] > 2.2250738585072014e-308
-    # left-looking (column m from the finished columns 0..m-1, dot-product
-    # form): each step writes one entry, which stays in L1, instead of the
-    # whole trailing matrix (measured 30 % faster than right-looking)
-    tol2 = fallback_tol * fallback_tol
     for m in range(p):
         rm = m * (m + 1) // 2
         mm = rm + m
@@ -432,31 +548,11 @@ def _lane_group(
                     inv = Hi[mm, w]
                     Hr[im, w] *= inv
                     Hi[im, w] *= inv
-    # 5. solve, then refine with the explicit residual
-    _chol_solve(Hr, Hi, gr, gi, xr, xi, p)
-    for w in range(LANES):
-        change_num[w] = 0.0
-        change_den[w] = 0.0
-    for step in range(refine_steps + 1):
-        _residual(
-            sr, si, xr, xi, weights, col_base, data_index, F, polyr, polyi,
-            resr, resi,
-        )
-        if step == refine_steps:
-            break
-        _adjoint(sr, si, resr, resi, weights, col_base, data_index, F,
-                 polyr, polyi, gr, gi)
-        _chol_solve(Hr, Hi, gr, gi, dr, di, p)
-        for w in range(LANES):
-            change_num[w] = 0.0
-            change_den[w] = 0.0
-        for i in range(p):
-            for w in range(LANES):
-                change_num[w] += scale2[i, w] * (dr[i, w] ** 2 + di[i, w] ** 2)
-                change_den[w] += scale2[i, w] * (xr[i, w] ** 2 + xi[i, w] ** 2)
-                xr[i, w] += dr[i, w]
-                xi[i, w] += di[i, w]
-    # 6. diag of (L L^H)^-1 at the trailing columns: inverse of the tail of L
+
+
+def _tail_inverse_py(Hr, Hi, n_centre, p, tr, ti):
+    """``T = `` inverse of the trailing ``n_centre`` block of ``L`` (lower);
+    ``(L L^H)^-1`` at the trailing columns is ``T^H T``."""
     off = p - n_centre
     for c in range(n_centre):
         cc = (off + c) * (off + c + 1) // 2 + off + c
@@ -478,7 +574,25 @@ def _lane_group(
             for w in range(LANES):
                 tr[i, c, w] *= Hi[ii, w]
                 ti[i, c, w] *= Hi[ii, w]
-    # 7. outputs of the real lanes (parameters mapped by ``to_layout``)
+
+
+def _write_tail_cov_py(tr, ti, w, cvar, row):
+    """``cvar[row] = T^H T`` of lane ``w`` (see :func:`_tail_inverse`)."""
+    n_centre = tr.shape[0]
+    for c in range(n_centre):
+        for d in range(n_centre):
+            ar = 0.0
+            ai = 0.0
+            for i in range(max(c, d), n_centre):
+                ar += tr[i, c, w] * tr[i, d, w] + ti[i, c, w] * ti[i, d, w]
+                ai += tr[i, c, w] * ti[i, d, w] - ti[i, c, w] * tr[i, d, w]
+            cvar[row, c, d, 0] = ar
+            cvar[row, c, d, 1] = ai
+
+
+def _to_layout_py(xr, xi, to_layout, dr, di):
+    """``d = x @ to_layout`` (real map) for every lane."""
+    p = xr.shape[0]
     for j in range(p):
         for w in range(LANES):
             dr[j, w] = 0.0
@@ -489,43 +603,6 @@ def _lane_group(
                 for w in range(LANES):
                     dr[j, w] += xr[i, w] * c
                     di[j, w] += xi[i, w] * c
-    for w in range(LANES):
-        row = first + w
-        if row >= B:
-            break
-        total = 0.0
-        for q in range(P):
-            for r in range(L):
-                total += resr[q, r, w] ** 2 + resi[q, r, w] ** 2
-        refined = refine_steps == 0 or (
-            change_num[w] <= refine_tol * refine_tol * change_den[w]
-        )
-        if ok[w]:
-            for j in range(p):
-                theta[row, j, 0] = dr[j, w]
-                theta[row, j, 1] = di[j, w]
-            rss[row] = total
-            # (L L^H)^-1 at the trailing block: T^H T, T the inverse tail
-            for c in range(n_centre):
-                for d in range(n_centre):
-                    ar = 0.0
-                    ai = 0.0
-                    for i in range(max(c, d), n_centre):
-                        ar += tr[i, c, w] * tr[i, d, w] + ti[i, c, w] * ti[i, d, w]
-                        ai += tr[i, c, w] * ti[i, d, w] - ti[i, c, w] * tr[i, d, w]
-                    cvar[row, c, d, 0] = ar
-                    cvar[row, c, d, 1] = ai
-            fast[row] = refined
-        else:
-            for i in range(p):
-                theta[row, i, 0] = np.nan
-                theta[row, i, 1] = np.nan
-            rss[row] = np.nan
-            for c in range(n_centre):
-                for d in range(n_centre):
-                    cvar[row, c, d, 0] = np.nan
-                    cvar[row, c, d, 1] = np.nan
-            fast[row] = False
 
 
 def _chol_solve_py(Hr, Hi, gr, gi, xr, xi, p):
@@ -647,6 +724,14 @@ if AVAILABLE:  # pragma: no branch
         "error_model": "numpy",
     }
     _scratch = njit(**_opts)(_scratch_py)
+    _gather = njit(**_opts)(_gather_py)
+    _pair_series = njit(**_opts)(_pair_series_py)
+    _moments = njit(**_opts)(_moments_py)
+    _gram = njit(**_opts)(_gram_py)
+    _cholesky = njit(**_opts)(_cholesky_py)
+    _tail_inverse = njit(**_opts)(_tail_inverse_py)
+    _write_tail_cov = njit(**_opts)(_write_tail_cov_py)
+    _to_layout = njit(**_opts)(_to_layout_py)
     _chol_solve = njit(**_opts)(_chol_solve_py)
     _residual = njit(**_opts)(_residual_py)
     _adjoint = njit(**_opts)(_adjoint_py)

@@ -48,6 +48,7 @@ guard acted are counted.
 
 from __future__ import annotations
 
+import functools
 import os
 import sys
 import warnings
@@ -56,6 +57,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from sklearn.exceptions import ConvergenceWarning
 
+from . import _compiled, _compiled_refine
 from .local_models import (
     LocalModelFit,
     normalise_spectra,
@@ -64,12 +66,19 @@ from .local_models import (
 )
 from .progress import progress
 from .solvers import (
+    _compiled_tables,
     lemma2_variance,
     noise_variance,
     qr_chunk_size,
+    resolve_backend,
     solve_local_least_squares,
 )
-from .windows import LocalModelLayout, local_regressor, window_offsets
+from .windows import (
+    LocalModelLayout,
+    StructuredWindows,
+    local_regressor,
+    window_offsets,
+)
 
 __all__ = [
     "RefinementGuardWarning",
@@ -226,6 +235,7 @@ def refine_local_models(
     keep_best: bool = True,
     chunk_size: int | None = None,
     verbose: bool = False,
+    backend: str = "auto",
 ) -> RefinementResult:
     """Refine closed-form local models with SK, then guarded LM iterations.
 
@@ -266,6 +276,15 @@ def refine_local_models(
         :func:`lrmfrf.local_models.fit_local_models`.
     verbose : bool, default=False
         Show a progress bar over the chunks (long records; needs tqdm).
+    backend : {"auto", "numpy", "numba"}, default="auto"
+        ``"numba"``: SK in the compiled kernel (:mod:`lrmfrf._compiled_refine`,
+        the window moments reweighted per iteration, no regressor formed);
+        ``"numpy"``: array operations on the regressors of chunks of windows.
+        ``"auto"`` chooses as :func:`lrmfrf.solvers.resolve_backend` (SK and
+        LM alike; the compiled LM builds ``J^H J`` from the moments too, with
+        the denominator pair series from ``yhat``). Both give
+        the same results up to round-off, except on windows where a guard
+        decision sits on its threshold.
 
     Returns
     -------
@@ -330,6 +349,7 @@ def refine_local_models(
         keep_best=keep_best,
         chunk_size=chunk_size,
         verbose=verbose,
+        backend=backend,
     )
     if u_exponent or y_exponent:
         result = replace(
@@ -359,21 +379,31 @@ FAR_FROM_CONVERGENCE = 1e-3
 
 def _refine(
     U, Y, layout, local_fit, *, sk_iterations, lm_iterations, tol, guard, jump,
-    keep_best, chunk_size, verbose=False,
+    keep_best, chunk_size, verbose=False, backend="auto",
 ) -> RefinementResult:
     """Kernel of :func:`refine_local_models` (no warnings)."""
-    F = layout.F
+    nb = layout.n_bands
     slow_bins = np.asarray(local_fit.slow_bins, dtype=int)
     B = slow_bins.size
     if chunk_size is None:
         chunk_size = qr_chunk_size(layout)
     guard_radius = 0.0 if not guard else float(guard) / max(layout.half_window, 1)
-    jump_limit = np.full((B, F), np.inf)
+    jump_limit = np.full((B, nb), np.inf)
     if jump is not None:
         jump_limit = jump * np.nan_to_num(np.sqrt(local_fit.system_var), nan=np.inf)
+    n_ok = int(np.count_nonzero(local_fit.well_posed))
+    work = n_ok * max(sk_iterations + lm_iterations, 1)
+    backend = resolve_backend(backend, work, layout.n_params)
+    if backend == "numba" and (sk_iterations or lm_iterations):
+        return _refine_compiled(
+            U, Y, layout, local_fit, sk_iterations=sk_iterations,
+            lm_iterations=lm_iterations, tol=tol, guard_radius=guard_radius,
+            jump_limit=jump_limit, keep_best=keep_best,
+        )
 
     theta = local_fit.theta.copy()
     gram = np.full((B, layout.n_params), np.nan)
+    lead = np.full((B, nb, nb), np.nan, dtype=complex)
     cost = np.full(B, np.nan)
     guarded = np.zeros(B, dtype=bool)
     converged = np.zeros(B, dtype=bool)
@@ -407,7 +437,9 @@ def _refine(
         guarded[idx] = state.guarded
         converged[idx] = state.converged
         if sk_iterations or lm_iterations:
-            gram[idx] = _final_gram_inv_diag(state, use_lm=lm_iterations > 0)
+            gram[idx], lead[idx] = _final_gram_inv_diag(
+                state, use_lm=lm_iterations > 0
+            )
 
     n_ok = max(int(np.count_nonzero(local_fit.well_posed)), 1)
     n_sk = max((s.size for s in oe_sk), default=1) - 1
@@ -419,7 +451,7 @@ def _refine(
     far_lm = n_lm == lm_iterations and _still_dropping(cost_history[n_sk:], tol)
 
     if sk_iterations or lm_iterations:
-        refined = _refined_fit(local_fit, layout, theta, cost, gram)
+        refined = _refined_fit(local_fit, layout, theta, cost, gram, lead)
     else:
         refined = local_fit
     return RefinementResult(
@@ -512,7 +544,7 @@ class _ChunkState:
 
     def rejected(self, idx: np.ndarray, trial: np.ndarray) -> np.ndarray:
         """Guard of the module docstring for the windows ``idx``."""
-        F = self.layout.F
+        F, nb = self.layout.F, self.layout.n_bands
         bad = ~np.isfinite(trial).all(axis=1)
         if self.guard_radius > 0:
             coef = np.abs(trial[:, self.layout.den_columns])
@@ -522,7 +554,7 @@ class _ChunkState:
             root = denominator_roots(trial[check], self.layout)
             near = (root < self.guard_radius) & (root < self.start_root[idx[check]])
             bad[check] |= near | np.isnan(root)
-        move = np.abs(F * trial[:, :F] - self.start_system[idx])
+        move = np.abs(F * trial[:, :nb] - self.start_system[idx])
         bad |= (move > self.jump_limit[idx]).any(axis=1)
         return bad
 
@@ -730,36 +762,137 @@ def _final_gram_inv_diag(state: _ChunkState, *, use_lm: bool) -> np.ndarray:
     """Diagonal of the inverse normal matrix linearised at the final estimate.
 
     SK: Lemma 2 on the reweighted regressor ``A / e``. LM: ``(J^H J)^-1``.
+    Also returns the block at the leading ``n_bands`` (system) columns.
     """
+    nb = state.layout.n_bands
     if use_lm:
         J, residual = _jacobian(state.A, state.b, state.theta, state.layout)
-        return solve_local_least_squares(J, residual).gram_inv_diag
-    e = denominator_values(state.theta, state.layout)
-    return solve_local_least_squares(
-        state.A / e[:, :, None], state.b / e
-    ).gram_inv_diag
+        sol = solve_local_least_squares(J, residual, cov_columns=nb)
+    else:
+        e = denominator_values(state.theta, state.layout)
+        sol = solve_local_least_squares(
+            state.A / e[:, :, None], state.b / e, cov_columns=nb
+        )
+    return sol.gram_inv_diag, sol.lead_cov
 
 
-def _refined_fit(local_fit, layout, theta, cost, gram) -> LocalModelFit:
-    F = layout.F
+def _refined_fit(local_fit, layout, theta, cost, gram, lead) -> LocalModelFit:
+    F, nb = layout.F, layout.n_bands
     noise_var = noise_variance(cost, layout.dof)
-    system = F * theta[:, :F]
-    system_var = lemma2_variance(gram[:, :F], noise_var, F)
+    system = F * theta[:, :nb]
+    system_var = lemma2_variance(gram[:, :nb], noise_var, F)
+    system_cov = F**2 * lead * noise_var[:, None, None]
     cols = [layout.transient_column(p) for p in range(layout.n_experiments)]
     transient = theta[:, cols]
     bad = ~local_fit.well_posed
-    for arr in (theta, system, system_var, transient, noise_var, cost):
+    for arr in (theta, system, system_var, system_cov, transient, noise_var, cost):
         arr[bad] = np.nan
     return replace(
         local_fit,
         theta=theta,
         system=system,
         system_var=system_var,
+        system_cov=system_cov,
         transient=transient,
         noise_var=noise_var,
         rss=cost,
         leverage=None,
     )
+
+
+def _refine_compiled(
+    U, Y, layout, local_fit, *, sk_iterations, lm_iterations, tol, guard_radius,
+    jump_limit, keep_best,
+) -> RefinementResult:
+    """SK and LM through the compiled kernel (:func:`lrmfrf._compiled_refine.
+    sk_windows`); the same results as the numpy path of :func:`_refine`."""
+    nb, P = layout.n_bands, layout.n_experiments
+    ok = np.flatnonzero(local_fit.well_posed)
+    B = local_fit.slow_bins.size
+    n_ok = max(ok.size, 1)
+    sk = _sk_layout(layout)
+    theta0 = _real_map(local_fit.theta[ok], sk["from_layout"])
+    start_root = np.full(ok.size, np.inf)
+    if guard_radius > 0 and layout.den_degree:
+        coef = np.abs(local_fit.theta[ok][:, layout.den_columns])
+        powers = guard_radius ** np.arange(1, layout.den_degree + 1)
+        check = np.flatnonzero(~(coef @ powers < 1.0))
+        start_root[check] = denominator_roots(local_fit.theta[ok][check], layout)
+    radius = np.minimum(guard_radius, start_root)
+    radius[np.isnan(radius)] = 0.0
+    theta_int, cost_ok, conv_ok, guard_ok, cov, sk_sums, oe_sums, lm_sums = (
+        _compiled_refine.sk_windows(
+            U.reshape(P, layout.n_inputs, -1), Y, local_fit.slow_bins[ok], theta0,
+            local_fit.rss[ok], local_fit.system[ok], jump_limit[ok], radius,
+            weights=sk["weights"], col_base=sk["col_base"], tables=sk["tables"],
+            n_bands=nb, n_centre=nb + P, band_int=sk["band_int"],
+            den_int=sk["den_int"], den_map=sk["den_map"], system_factor=layout.F,
+            guard_radius=guard_radius, iterations=sk_iterations, tol=tol,
+            keep_best=keep_best, exact_tol=EXACT_FIT_TOL,
+            lm_iterations=lm_iterations, from_layout=sk["from_layout"],
+        )
+    )
+    theta = local_fit.theta.copy()
+    theta[ok] = _real_map(theta_int, sk["to_layout"])
+    cost = np.full(B, np.nan)
+    cost[ok] = cost_ok
+    guarded = np.zeros(B, dtype=bool)
+    guarded[ok] = guard_ok
+    converged = np.zeros(B, dtype=bool)
+    converged[ok] = conv_ok
+    gram = np.full((B, layout.n_params), np.nan)
+    gram[ok, :nb] = np.real(np.diagonal(cov[:, :nb, :nb], axis1=1, axis2=2))
+    lead = np.full((B, nb, nb), np.nan, dtype=complex)
+    lead[ok] = cov[:, :nb, :nb]
+    n_sk, n_lm = sk_sums.size - 1, lm_sums.size
+    cost_history = np.concatenate([oe_sums, lm_sums]) / n_ok
+    return RefinementResult(
+        local_fit=_refined_fit(local_fit, layout, theta, cost, gram, lead),
+        cost_history=cost_history,
+        sk_cost_history=sk_sums / n_ok,
+        sk_iterations=n_sk,
+        lm_iterations=n_lm,
+        guarded=guarded,
+        converged=converged,
+        stopped_far=(
+            n_sk == sk_iterations and _still_dropping(cost_history[: n_sk + 1], tol),
+            n_lm == lm_iterations and _still_dropping(cost_history[n_sk:], tol),
+        ),
+    )
+
+
+def _real_map(theta: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    """Complex ``theta @ matrix`` for a real ``matrix``."""
+    return theta.real @ matrix + 1j * (theta.imag @ matrix)
+
+
+@functools.lru_cache(maxsize=16)
+def _sk_layout(layout: LocalModelLayout) -> dict:
+    """Tables of the compiled SK of a layout (data-independent)."""
+    weights, col_base, _ = _compiled_tables(layout)
+    P, nb = layout.n_experiments, layout.n_bands
+    tables = _compiled.moment_tables(weights, col_base, nb, P, weighted=True)
+    empty = StructuredWindows(
+        np.zeros((P, nb)), np.zeros((P, 1)), np.zeros(0, dtype=int), layout
+    )
+    T = empty.to_layout_matrix
+    p = layout.n_params
+    band_int = np.argmax(T[:, :nb] != 0, axis=0)
+    # the window-centre band values are internal columns p - n_centre + f, as
+    # they are (no change of basis) layout columns f
+    expected = np.zeros((p, nb))
+    expected[band_int, np.arange(nb)] = 1.0
+    if not np.array_equal(T[:, :nb], expected) or not np.array_equal(
+        band_int, p - nb - P + np.arange(nb)
+    ):
+        raise AssertionError("unexpected internal order of the centre columns")
+    den_cols = np.arange(p)[layout.den_columns]
+    den_int = np.flatnonzero(np.any(T[:, den_cols] != 0, axis=1))
+    return {
+        "weights": weights, "col_base": col_base, "tables": tables,
+        "to_layout": T, "from_layout": np.linalg.inv(T), "band_int": band_int,
+        "den_int": den_int, "den_map": T[np.ix_(den_int, den_cols)],
+    }
 
 
 def _pad_sum(parts, length):
@@ -770,3 +903,57 @@ def _pad_sum(parts, length):
         padded = np.concatenate([part, np.full(length - part.size, part[-1])])
         total += padded
     return total
+
+
+def result_summary(result: RefinementResult) -> dict:
+    """The history of one refinement, for :func:`pool_summaries`."""
+    n_sk = result.sk_iterations
+    return {
+        "n_windows": int(np.count_nonzero(result.local_fit.well_posed)),
+        "sk": result.cost_history[: n_sk + 1],
+        "lm": result.cost_history[n_sk + 1 :],
+        "sk_cost": result.sk_cost_history,
+        "n_guarded": result.n_guarded,
+    }
+
+
+def pool_summaries(summaries: list[dict]) -> dict:
+    """Histories of several refinements (the output rows of a MIMO fit) as
+    one over all their windows: a refinement that stopped earlier keeps its
+    last mean cost, the means are weighted by the numbers of windows.
+
+    Parameters
+    ----------
+    summaries : list of dict
+        :func:`result_summary` of each refinement.
+
+    Returns
+    -------
+    dict
+        ``cost_history``, ``sk_cost_history``, ``sk_iterations``,
+        ``lm_iterations`` and ``n_guarded``, as in :class:`RefinementResult`.
+    """
+    n_sk = max(s["sk"].size for s in summaries) - 1
+    n_lm = max(s["lm"].size for s in summaries)
+    total = max(sum(s["n_windows"] for s in summaries), 1)
+    sk = np.zeros(n_sk + 1)
+    lm = np.zeros(n_lm)
+    sk_cost = np.zeros(n_sk + 1)
+    for s in summaries:
+        weight = s["n_windows"] / total
+        sk += weight * _padded(s["sk"], n_sk + 1)
+        sk_cost += weight * _padded(s["sk_cost"], n_sk + 1)
+        lm += weight * _padded(s["lm"] if s["lm"].size else s["sk"][-1:], n_lm)
+    return {
+        "cost_history": np.concatenate([sk, lm]),
+        "sk_cost_history": sk_cost,
+        "sk_iterations": n_sk,
+        "lm_iterations": n_lm,
+        "n_guarded": sum(s["n_guarded"] for s in summaries),
+    }
+
+
+def _padded(values: np.ndarray, length: int) -> np.ndarray:
+    if length == 0:
+        return values[:0]
+    return np.concatenate([values, np.full(length - values.size, values[-1])])

@@ -182,12 +182,6 @@ def test_predict_returns_the_input_form_and_score_averages_outputs():
         est.predict(u[0, :1])
 
 
-def test_refinement_of_mimo_fits_is_not_implemented():
-    n, u, y, _, _ = _in_class(2, 1, 2, 1, seed=6)
-    with pytest.raises(NotImplementedError, match="one input and one output"):
-        LRMBeyondNyquist(half_window=n, sk_iterations=3, **DEG).fit(u, y, 2)
-
-
 # --- simulated 2x2 stage ------------------------------------------------------
 
 

@@ -1,0 +1,824 @@
+"""Compiled Sanathanan-Koerner refinement (optional, needs numba).
+
+:func:`sk_windows` runs, for every window, what
+:func:`lrmfrf.refinement._sanathanan_koerner` does with array operations,
+with the lanes and steps of the closed-form kernel (:mod:`lrmfrf._compiled`).
+
+The SK weight of row ``r`` of a window is ``W(r) = 1 / |e_prev(x_r)|^2``: real
+and the same for every experiment. Every Gram entry of the reweighted problem
+is therefore ``sum_r w_i(r) w_j(r) W(r) S_ab(r)``: the moment form of the
+closed form with the pair series ``S_ab`` replaced by ``W S_ab`` (the parity
+fold holds for any series), and the transient-transient block given by the
+moments of ``W`` itself (``moment_tables(..., weighted=True)``). A lane group
+gathers its windows and forms the pair series once; each iteration then costs
+the weighted moments, the Gram matrix, a Cholesky factorisation, a solve with
+one step of iterative refinement on the weighted residual (as
+:func:`lrmfrf.refinement._weighted_solve`), the output-error cost and the
+guard. The pole guard counts roots in a disk with the Schur-Cohn recursion
+(:func:`_root_in_unit_disk`) instead of eigenvalues.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from . import _compiled
+from ._compiled import AVAILABLE, LANES
+
+__all__ = ["sk_windows", "root_in_disk"]
+
+_GROUPS_PER_TASK = 4
+
+_DATA_DATA_ = _compiled._DATA_DATA
+_DATA_CONST_ = _compiled._DATA_CONST
+
+
+def _root_in_unit_disk_py(cr, ci, nr, ni, d):
+    """Whether ``sum_k (cr[k] + i ci[k]) z^k`` (degree ``d``) has a root with
+    ``|z| <= 1`` (``cr``, ``ci`` are overwritten).
+
+    Schur-Cohn: all roots lie outside the closed unit disk iff ``|a_0| >
+    |a_d|`` and the same holds, recursively, for ``conj(a_0) p(z) - a_d
+    p*(z)`` (degree ``d - 1``; ``p*`` the reversed conjugate), which has the
+    same number of roots inside by Rouche's theorem. NaN coefficients count
+    as a root inside.
+    """
+    while d >= 1:
+        a0 = cr[0] * cr[0] + ci[0] * ci[0]
+        ad = cr[d] * cr[d] + ci[d] * ci[d]
+        if not a0 > ad:
+            return True
+        for k in range(d):
+            r1 = cr[0] * cr[k] + ci[0] * ci[k]
+            i1 = cr[0] * ci[k] - ci[0] * cr[k]
+            r2 = cr[d] * cr[d - k] + ci[d] * ci[d - k]
+            i2 = ci[d] * cr[d - k] - cr[d] * ci[d - k]
+            nr[k] = r1 - r2
+            ni[k] = i1 - i2
+        inv = 1.0 / nr[0]  # |a_0|^2 - |a_d|^2 > 0
+        for k in range(d):
+            cr[k] = nr[k] * inv
+            ci[k] = ni[k] * inv
+        d -= 1
+    return False
+
+
+def root_in_disk(coef: np.ndarray, radius: float) -> bool:
+    """Whether ``1 + sum_s coef[s-1] x^s`` has a root with ``|x| <= radius``.
+
+    Parameters
+    ----------
+    coef : ndarray of shape (R_e,), complex
+    radius : float
+
+    Returns
+    -------
+    bool
+    """
+    d = coef.size
+    scaled = np.concatenate([[1.0], coef * radius ** np.arange(1, d + 1)])
+    cr, ci = scaled.real.copy(), scaled.imag.copy()
+    return bool(_root_in_unit_disk(cr, ci, np.empty(d + 1), np.empty(d + 1), d))
+
+
+def _sk_scratch_py(F, P, L, p, n_moments, n_centre, n_pairs, n_den):
+    n_base = F + P + 1
+    n = L // 2
+    f64 = np.float64
+    return (
+        np.empty((F + 1, P, L, LANES), f64), np.empty((F + 1, P, L, LANES), f64),
+        np.empty((n_pairs, L, LANES), f64), np.empty((n_pairs, L, LANES), f64),
+        np.empty((L, LANES), f64), np.empty((L, LANES), f64),
+        np.empty((n + 1, LANES), f64), np.empty((n + 1, LANES), f64),
+        np.empty((n + 1, LANES), f64), np.empty((n + 1, LANES), f64),
+        np.empty((n_moments, LANES), f64), np.empty((n_moments, LANES), f64),
+        np.empty((p * (p + 1) // 2, LANES), f64),
+        np.empty((p * (p + 1) // 2, LANES), f64),
+        np.empty((p, LANES), f64), np.empty((p, LANES), f64),
+        np.empty((p, LANES), f64), np.empty((p, LANES), f64),
+        np.empty((p, LANES), f64), np.empty((p, LANES), f64),
+        np.empty((p, LANES), f64),
+        np.empty((n_base, L, LANES), f64), np.empty((n_base, L, LANES), f64),
+        np.empty((P, L, LANES), f64), np.empty((P, L, LANES), f64),
+        np.empty((L, LANES), f64),
+        np.empty((L, LANES), f64), np.empty((L, LANES), f64),
+        np.empty((L, LANES), f64), np.empty((L, LANES), f64),
+        np.empty((p, LANES), f64), np.empty((p, LANES), f64),
+        np.empty((p, LANES), f64), np.empty((p, LANES), f64),
+        np.empty(LANES, np.bool_), np.empty(LANES, np.int64),
+        np.empty((8, LANES), f64), np.empty((4, LANES), np.bool_),
+        np.empty((n_centre, n_centre, LANES), f64),
+        np.empty((n_centre, n_centre, LANES), f64),
+        np.empty((4, n_den + 1), f64),
+        np.empty((F + 1, P, L, LANES), f64), np.empty((F + 1, P, L, LANES), f64),
+        np.empty((p * (p + 1) // 2, LANES), f64),
+        np.empty((p * (p + 1) // 2, LANES), f64),
+        np.empty((p, LANES), f64), np.empty((p, LANES), f64),
+        np.empty((p, LANES), f64), np.empty((p, LANES), f64),
+        np.empty((p, LANES), f64), np.empty((3, LANES), f64),
+        np.empty((2, LANES), np.bool_),
+        np.empty((p * (p + 1) // 2, LANES), f64),
+        np.empty((p * (p + 1) // 2, LANES), f64),
+    )
+
+
+def _denominator_py(polyr, polyi, den, er, ei):
+    """``e(x_r) = 1 + `` the denominator polynomial (base ``den``)."""
+    L = er.shape[0]
+    for r in range(L):
+        for w in range(LANES):
+            er[r, w] = 1.0 + polyr[den, r, w]
+            ei[r, w] = polyi[den, r, w]
+
+
+def _weighted_gram_py(
+    Sar, Sai, Wt, Tr, Ti, q_basis, pair_off, pair_nd, Er, Ei, Or, Oi, mr, mi,
+    ent_ptr, ent_mom, ent_coef, ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef,
+    Hr, Hi, gr, gi,
+):
+    """Gram and ``A^H W b`` of the row-weighted problem from the stored pair
+    series: the moments of ``W S_ab``."""
+    L = Wt.shape[0]
+    for t in range(Sar.shape[0]):
+        for r in range(L):
+            for w in range(LANES):
+                Tr[r, w] = Wt[r, w] * Sar[t, r, w]
+                Ti[r, w] = Wt[r, w] * Sai[t, r, w]
+        _compiled._moments(
+            Tr, Ti, q_basis, pair_off[t], pair_nd[t], Er, Ei, Or, Oi, mr, mi
+        )
+    _compiled._gram(mr, mi, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const,
+                    rhs_ptr, rhs_mom, rhs_coef, Hr, Hi, gr, gi)
+
+
+def _rejected_py(
+    xr, xi, w, row, band_int, system_factor, start_system, jump_limit, den_int,
+    den_map, guard_radius, radius, work,
+):
+    """The guard of :meth:`lrmfrf.refinement._ChunkState.rejected` for lane
+    ``w`` (window ``row``): an FRF jump, or a root of ``e(x)`` (monomial
+    coefficients ``x[den_int] @ den_map``) with ``|x| < radius[row]`` when
+    the Rouche bound ``sum |e_s| guard^s < 1`` does not exclude one."""
+    for f in range(band_int.shape[0]):
+        vr = system_factor * xr[band_int[f], w] - start_system[row, f, 0]
+        vi = system_factor * xi[band_int[f], w] - start_system[row, f, 1]
+        if np.sqrt(vr * vr + vi * vi) > jump_limit[row, f]:
+            return True
+    n_den = den_int.shape[0]
+    if guard_radius > 0.0 and n_den > 0:
+        work[0, 0] = 1.0
+        work[1, 0] = 0.0
+        bound = 0.0
+        power = 1.0
+        for s in range(n_den):
+            er = 0.0
+            ei = 0.0
+            for j in range(n_den):
+                c = den_map[j, s]
+                er += xr[den_int[j], w] * c
+                ei += xi[den_int[j], w] * c
+            power *= guard_radius
+            bound += np.sqrt(er * er + ei * ei) * power
+            work[0, s + 1] = er
+            work[1, s + 1] = ei
+        if not bound < 1.0:
+            R = radius[row]
+            if R > 0.0:
+                power = 1.0
+                for s in range(1, n_den + 1):
+                    power *= R
+                    work[0, s] *= power
+                    work[1, s] *= power
+                if _root_in_unit_disk(work[0], work[1], work[2], work[3], n_den):
+                    return True
+    return False
+
+
+def _sk_range_py(
+    U, Y, bins, theta0, closed_rss, start_system, jump_limit, radius,
+    weights, col_base, data_index, F, n_centre, q_basis, pair_kind, pair_a,
+    pair_b, pair_nd, pair_off, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const,
+    rhs_ptr, rhs_mom, rhs_coef, n_moments, band_int, den_int, den_map,
+    system_factor, guard_radius, iterations, lm_iterations, tol, keep_best,
+    exact_tol, theta_out, cost_out, flags_out, cvar_out, history, n_run,
+    lm_history, n_run_lm, s_ptr, s_col, s_val, first_group, stop_group,
+):
+    """SK on the lane groups ``first_group..stop_group-1``."""
+    P = U.shape[0]
+    L, p = weights.shape
+    s = _sk_scratch(
+        F, P, L, p, n_moments, n_centre, pair_kind.shape[0], den_int.shape[0]
+    )
+    for group in range(first_group, stop_group):
+        _sk_group(
+            U, Y, bins, theta0, closed_rss, start_system, jump_limit, radius,
+            weights, col_base, data_index, F, n_centre, q_basis, pair_kind,
+            pair_a, pair_b, pair_nd, pair_off, ent_ptr, ent_mom, ent_coef,
+            ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef, band_int, den_int,
+            den_map, system_factor, guard_radius, iterations, lm_iterations,
+            tol, keep_best, exact_tol, theta_out, cost_out, flags_out, cvar_out,
+            history, n_run, lm_history, n_run_lm, s_ptr, s_col, s_val, group, s,
+        )
+
+
+def _sk_group_py(
+    U, Y, bins, theta0, closed_rss, start_system, jump_limit, radius,
+    weights, col_base, data_index, F, n_centre, q_basis, pair_kind, pair_a,
+    pair_b, pair_nd, pair_off, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const,
+    rhs_ptr, rhs_mom, rhs_coef, band_int, den_int, den_map,
+    system_factor, guard_radius, iterations, lm_iterations, tol, keep_best,
+    exact_tol, theta_out, cost_out, flags_out, cvar_out, history, n_run,
+    lm_history, n_run_lm, s_ptr, s_col, s_val, group, s,
+):
+    """SK for the windows ``bins[group*LANES:(group+1)*LANES]``."""
+    (sr, si, Sar, Sai, Tr, Ti, Er, Ei, Or, Oi, mr, mi, Hr, Hi, gr, gi, xr, xi,
+     dr, di, scale2, polyr, polyi, resr, resi, Wt, er, ei, etr, eti, thr, thi,
+     bsr, bsi, ok, k, lane, flag, tr, ti, work, hr, hi, Hsr, Hsi, gsr, gsi,
+     str_, sti, ds, lm_lane, need, Gtr, Gti) = s
+    # lane[0..5]: trajectory cost, best cost, SK cost, trial cost, trial rss,
+    # |b|^2; flag[0..3]: active, converged, guarded, exact
+    L, p = weights.shape
+    n = L // 2
+    P = U.shape[0]
+    den = F + P
+    B = bins.shape[0]
+    first = group * LANES
+    count = min(LANES, B - first)
+    for w in range(LANES):
+        k[w] = bins[min(first + w, B - 1)]
+    _compiled._gather(U, Y, k, F, n, sr, si)
+    for t in range(pair_kind.shape[0]):
+        _compiled._pair_series(
+            sr, si, pair_kind[t], pair_a[t], pair_b[t], Sar[t], Sai[t]
+        )
+    for i in range(p):
+        for w in range(LANES):
+            row = min(first + w, B - 1)
+            thr[i, w] = theta0[row, i, 0]
+            thi[i, w] = theta0[row, i, 1]
+            bsr[i, w] = thr[i, w]
+            bsi[i, w] = thi[i, w]
+    _compiled._residual(sr, si, thr, thi, weights, col_base, data_index, F,
+                        polyr, polyi, resr, resi)
+    _denominator(polyr, polyi, den, er, ei)
+    total_sk = 0.0
+    total_oe = 0.0
+    for w in range(LANES):
+        cost = 0.0
+        bb = 0.0
+        for q in range(P):
+            for r in range(L):
+                cost += (resr[q, r, w] ** 2 + resi[q, r, w] ** 2) / (
+                    er[r, w] ** 2 + ei[r, w] ** 2
+                )
+                bb += sr[F, q, r, w] ** 2 + si[F, q, r, w] ** 2
+        lane[0, w] = cost
+        lane[1, w] = cost
+        lane[2, w] = closed_rss[min(first + w, B - 1)]
+        exact = cost <= exact_tol * bb
+        flag[0, w] = not exact
+        flag[1, w] = exact
+        flag[2, w] = False
+        flag[3, w] = exact
+        if w < count:
+            total_sk += lane[2, w]
+            total_oe += cost
+    history[group, 0, 0] = total_sk
+    history[group, 0, 1] = total_oe
+    run = 0
+    for it in range(1, iterations + 1):
+        busy = False
+        for w in range(count):
+            busy = busy or flag[0, w]
+        if not busy:
+            for later in range(it, iterations + 1):
+                history[group, later, 0] = history[group, it - 1, 0]
+                history[group, later, 1] = history[group, it - 1, 1]
+            break
+        run = it
+        for r in range(L):
+            for w in range(LANES):
+                Wt[r, w] = 1.0 / (er[r, w] ** 2 + ei[r, w] ** 2)
+        _weighted_gram(
+            Sar, Sai, Wt, Tr, Ti, q_basis, pair_off, pair_nd, Er, Ei, Or, Oi,
+            mr, mi, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const, rhs_ptr,
+            rhs_mom, rhs_coef, Hr, Hi, gr, gi,
+        )
+        _compiled._cholesky(Hr, Hi, scale2, ok, 0.0, p)
+        _compiled._chol_solve(Hr, Hi, gr, gi, xr, xi, p)
+        # one step of refinement on the weighted residual (_weighted_solve)
+        _compiled._residual(sr, si, xr, xi, weights, col_base, data_index, F,
+                            polyr, polyi, resr, resi)
+        for q in range(P):
+            for r in range(L):
+                for w in range(LANES):
+                    resr[q, r, w] *= Wt[r, w]
+                    resi[q, r, w] *= Wt[r, w]
+        _compiled._adjoint(sr, si, resr, resi, weights, col_base, data_index, F,
+                           polyr, polyi, gr, gi)
+        _compiled._chol_solve(Hr, Hi, gr, gi, dr, di, p)
+        for i in range(p):
+            for w in range(LANES):
+                xr[i, w] += dr[i, w]
+                xi[i, w] += di[i, w]
+        _compiled._residual(sr, si, xr, xi, weights, col_base, data_index, F,
+                            polyr, polyi, resr, resi)
+        _denominator(polyr, polyi, den, etr, eti)
+        for w in range(LANES):
+            cost = 0.0
+            rss = 0.0
+            for q in range(P):
+                for r in range(L):
+                    sq = resr[q, r, w] ** 2 + resi[q, r, w] ** 2
+                    rss += Wt[r, w] * sq
+                    cost += sq / (etr[r, w] ** 2 + eti[r, w] ** 2)
+            lane[3, w] = cost
+            lane[4, w] = rss
+        total_sk = 0.0
+        total_oe = 0.0
+        for w in range(count):
+            row = first + w
+            if flag[0, w]:
+                finite = np.isfinite(lane[3, w])
+                for i in range(p):
+                    finite = finite and np.isfinite(xr[i, w])
+                    finite = finite and np.isfinite(xi[i, w])
+                if not (ok[w] and finite):
+                    flag[0, w] = False
+                elif _rejected(
+                    xr, xi, w, row, band_int, system_factor, start_system,
+                    jump_limit, den_int, den_map, guard_radius, radius, work,
+                ):
+                    flag[0, w] = False
+                    flag[2, w] = True
+                else:
+                    change = abs(lane[3, w] - lane[0, w]) / lane[0, w]
+                    lane[0, w] = lane[3, w]
+                    for i in range(p):
+                        thr[i, w] = xr[i, w]
+                        thi[i, w] = xi[i, w]
+                    for r in range(L):
+                        er[r, w] = etr[r, w]
+                        ei[r, w] = eti[r, w]
+                    if not keep_best or lane[3, w] < lane[1, w]:
+                        lane[1, w] = lane[3, w]
+                        for i in range(p):
+                            bsr[i, w] = xr[i, w]
+                            bsi[i, w] = xi[i, w]
+                    lane[2, w] = lane[4, w]
+                    if change < tol:
+                        flag[0, w] = False
+                        flag[1, w] = True
+            total_sk += lane[2, w]
+            total_oe += lane[1, w]
+        history[group, it, 0] = total_sk
+        history[group, it, 1] = total_oe
+    n_run[group] = run
+    if lm_iterations > 0:
+        n_run_lm[group] = _lm_phase(
+            sr, si, hr, hi, Sar, Sai, Tr, Ti, Er, Ei, Or, Oi, mr, mi, Hr, Hi,
+            gr, gi, xr, xi, scale2, polyr, polyi, resr, resi, Wt, etr, eti,
+            bsr, bsi, ok, lane, flag, work, Hsr, Hsi, gsr, gsi, str_, sti, ds,
+            lm_lane, need, Gtr, Gti, weights, col_base, data_index, F, q_basis,
+            pair_kind,
+            pair_a, pair_b, pair_nd, pair_off, ent_ptr, ent_mom, ent_coef,
+            ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef, band_int, den_int,
+            den_map, system_factor, guard_radius, start_system, jump_limit,
+            radius, lm_iterations, tol, lm_history, group, first, count, s_ptr,
+            s_col, s_val,
+        )
+    # Lemma 2 on the problem reweighted by the final estimate (LM: J^H J, the
+    # denominator columns built from yhat)
+    _compiled._residual(sr, si, bsr, bsi, weights, col_base, data_index, F,
+                        polyr, polyi, resr, resi)
+    _denominator(polyr, polyi, den, er, ei)
+    for r in range(L):
+        for w in range(LANES):
+            Wt[r, w] = 1.0 / (er[r, w] ** 2 + ei[r, w] ** 2)
+    if lm_iterations > 0:
+        _hat_series(sr, si, resr, resi, er, ei, F, hr, hi, pair_kind, pair_a,
+                    pair_b, Sar, Sai)
+    _weighted_gram(
+        Sar, Sai, Wt, Tr, Ti, q_basis, pair_off, pair_nd, Er, Ei, Or, Oi,
+        mr, mi, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const, rhs_ptr,
+        rhs_mom, rhs_coef, Hr, Hi, gr, gi,
+    )
+    _compiled._cholesky(Hr, Hi, scale2, ok, 0.0, p)
+    _compiled._tail_inverse(Hr, Hi, n_centre, p, tr, ti)
+    for w in range(count):
+        row = first + w
+        for i in range(p):
+            theta_out[row, i, 0] = bsr[i, w]
+            theta_out[row, i, 1] = bsi[i, w]
+        cost_out[row] = lane[1, w]
+        flags_out[row, 0] = flag[1, w]
+        flags_out[row, 1] = flag[2, w]
+        if ok[w]:
+            _compiled._write_tail_cov(tr, ti, w, cvar_out, row)
+        else:
+            for c in range(n_centre):
+                for d in range(n_centre):
+                    cvar_out[row, c, d, 0] = np.nan
+                    cvar_out[row, c, d, 1] = np.nan
+
+
+def _hat_series_py(sr, si, resr, resi, er, ei, F, hr, hi, pair_kind, pair_a,
+                   pair_b, Sar, Sai):
+    """Denominator base ``-yhat = -(Y - res / e)`` in ``hr/hi[F]`` (the other
+    bases copied from ``sr/si``) and the pair series that involve it."""
+    P = sr.shape[1]
+    L = sr.shape[2]
+    for f in range(F):
+        for q in range(P):
+            for r in range(L):
+                for w in range(LANES):
+                    hr[f, q, r, w] = sr[f, q, r, w]
+                    hi[f, q, r, w] = si[f, q, r, w]
+    for q in range(P):
+        for r in range(L):
+            for w in range(LANES):
+                inv = 1.0 / (er[r, w] ** 2 + ei[r, w] ** 2)
+                rr = resr[q, r, w]
+                ri = resi[q, r, w]
+                hr[F, q, r, w] = sr[F, q, r, w] + (rr * er[r, w] + ri * ei[r, w]) * inv
+                hi[F, q, r, w] = si[F, q, r, w] + (ri * er[r, w] - rr * ei[r, w]) * inv
+    for t in range(pair_kind.shape[0]):
+        kind = pair_kind[t]
+        a = pair_a[t]
+        b = pair_b[t]
+        uses = (kind == _DATA_DATA_ and (a == F or b == F)) or kind == _DATA_CONST_
+        if uses:
+            _compiled._pair_series(hr, hi, kind, a, b, Sar[t], Sai[t])
+
+
+def _gram_to_layout_py(Hr, Hi, s_ptr, s_col, s_val, Gr, Gi):
+    """Packed lower ``S H S^T`` of every lane into ``Gr/Gi`` (``S`` real,
+    sparse rows ``s_ptr/s_col/s_val``; ``H`` packed lower Hermitian): the
+    Gram matrix in the layout (monomial) basis, where numpy's LM damps."""
+    p = s_ptr.shape[0] - 1
+    for a in range(p):
+        ra = a * (a + 1) // 2
+        for b in range(a + 1):
+            for w in range(LANES):
+                Gr[ra + b, w] = 0.0
+                Gi[ra + b, w] = 0.0
+            for za in range(s_ptr[a], s_ptr[a + 1]):
+                i = s_col[za]
+                ca = s_val[za]
+                for zb in range(s_ptr[b], s_ptr[b + 1]):
+                    j = s_col[zb]
+                    c = ca * s_val[zb]
+                    if i >= j:
+                        e = i * (i + 1) // 2 + j
+                        for w in range(LANES):
+                            Gr[ra + b, w] += c * Hr[e, w]
+                            Gi[ra + b, w] += c * Hi[e, w]
+                    else:
+                        e = j * (j + 1) // 2 + i
+                        for w in range(LANES):
+                            Gr[ra + b, w] += c * Hr[e, w]
+                            Gi[ra + b, w] -= c * Hi[e, w]
+
+
+def _lm_phase_py(
+    sr, si, hr, hi, Sar, Sai, Tr, Ti, Er, Ei, Or, Oi, mr, mi, Hr, Hi,
+    gr, gi, xr, xi, scale2, polyr, polyi, resr, resi, Wt, etr, eti,
+    bsr, bsi, ok, lane, flag, work, Hsr, Hsi, gsr, gsi, str_, sti, ds,
+    lm_lane, need, Gtr, Gti, weights, col_base, data_index, F, q_basis,
+    pair_kind,
+    pair_a, pair_b, pair_nd, pair_off, ent_ptr, ent_mom, ent_coef,
+    ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef, band_int, den_int,
+    den_map, system_factor, guard_radius, start_system, jump_limit,
+    radius, iterations, tol, lm_history, group, first, count, s_ptr, s_col,
+    s_val,
+):
+    """Guarded LM of :func:`lrmfrf.refinement._levenberg_marquardt` from the
+    estimate in ``bsr/bsi`` (cost ``lane[1]``); returns the iterations run.
+    ``lm_lane[0..2]``: damping, start cost, trial cost; ``need[0]``: the
+    Gauss-Newton model must be rebuilt, ``need[1]``: spare. The model is
+    damped in the layout basis (``theta_internal = theta_layout S``), as numpy
+    does: Marquardt's damping is not invariant to a change of basis."""
+    L, p = weights.shape
+    P = sr.shape[1]
+    den = F + P
+    for w in range(LANES):
+        flag[0, w] = not flag[3, w]  # active: not an exact fit
+        flag[1, w] = flag[3, w]  # converged
+        need[0, w] = flag[0, w]
+        lm_lane[0, w] = 1e-3
+        lm_lane[1, w] = lane[1, w]
+        for i in range(p):
+            str_[i, w] = bsr[i, w]
+            sti[i, w] = bsi[i, w]
+    run = 0
+    for it in range(iterations):
+        rebuild = False
+        for w in range(count):
+            rebuild = rebuild or need[0, w]
+        if rebuild:  # equilibrated J^H J, J^H r and the scale at the estimate
+            _compiled._residual(sr, si, bsr, bsi, weights, col_base, data_index,
+                                F, polyr, polyi, resr, resi)
+            _denominator(polyr, polyi, den, etr, eti)
+            for r in range(L):
+                for w in range(LANES):
+                    Wt[r, w] = 1.0 / (etr[r, w] ** 2 + eti[r, w] ** 2)
+            _hat_series(sr, si, resr, resi, etr, eti, F, hr, hi, pair_kind,
+                        pair_a, pair_b, Sar, Sai)
+            _weighted_gram(
+                Sar, Sai, Wt, Tr, Ti, q_basis, pair_off, pair_nd, Er, Ei, Or, Oi,
+                mr, mi, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const, rhs_ptr,
+                rhs_mom, rhs_coef, Hr, Hi, gr, gi,
+            )
+            for q in range(P):
+                for r in range(L):
+                    for w in range(LANES):
+                        resr[q, r, w] *= Wt[r, w]
+                        resi[q, r, w] *= Wt[r, w]
+            _compiled._adjoint(hr, hi, resr, resi, weights, col_base, data_index,
+                               F, polyr, polyi, gr, gi)
+            _gram_to_layout(Hr, Hi, s_ptr, s_col, s_val, Gtr, Gti)
+            for w in range(count):
+                if not need[0, w]:
+                    continue
+                for i in range(p):
+                    d = Gtr[i * (i + 1) // 2 + i, w]
+                    d = np.sqrt(d) if d > 0.0 else 0.0
+                    ds[i, w] = d if d > 0.0 else 1.0
+                for i in range(p):
+                    ri = i * (i + 1) // 2
+                    for j in range(i + 1):
+                        c = 1.0 / (ds[i, w] * ds[j, w])
+                        Hsr[ri + j, w] = Gtr[ri + j, w] * c
+                        Hsi[ri + j, w] = Gti[ri + j, w] * c
+                    # J^H r = -Ahat^H W res, in the layout basis: S g
+                    accr = 0.0
+                    acci = 0.0
+                    for z in range(s_ptr[i], s_ptr[i + 1]):
+                        accr += s_val[z] * gr[s_col[z], w]
+                        acci += s_val[z] * gi[s_col[z], w]
+                    gsr[i, w] = -accr / ds[i, w]
+                    gsi[i, w] = -acci / ds[i, w]
+        busy = False
+        for w in range(count):
+            busy = busy or flag[0, w]
+        if not busy:
+            break
+        run = it + 1
+        for e in range(Hsr.shape[0]):
+            for w in range(LANES):
+                Hr[e, w] = Hsr[e, w]
+                Hi[e, w] = Hsi[e, w]
+        for i in range(p):
+            ii = i * (i + 1) // 2 + i
+            for w in range(LANES):
+                Hr[ii, w] += lm_lane[0, w]
+                gr[i, w] = -gsr[i, w]
+                gi[i, w] = -gsi[i, w]
+        _compiled._cholesky(Hr, Hi, scale2, ok, 0.0, p)
+        _compiled._chol_solve(Hr, Hi, gr, gi, xr, xi, p)
+        for i in range(p):  # the layout step, scaled back
+            for w in range(LANES):
+                xr[i, w] /= ds[i, w]
+                xi[i, w] /= ds[i, w]
+        for i in range(p):  # internal step S^T step: gr/gi as work space
+            for w in range(LANES):
+                gr[i, w] = bsr[i, w]
+                gi[i, w] = bsi[i, w]
+        for a in range(p):
+            for z in range(s_ptr[a], s_ptr[a + 1]):
+                c = s_val[z]
+                i = s_col[z]
+                for w in range(LANES):
+                    gr[i, w] += c * xr[a, w]
+                    gi[i, w] += c * xi[a, w]
+        for i in range(p):
+            for w in range(LANES):
+                xr[i, w] = gr[i, w]
+                xi[i, w] = gi[i, w]
+        _compiled._residual(sr, si, xr, xi, weights, col_base, data_index, F,
+                            polyr, polyi, resr, resi)
+        _denominator(polyr, polyi, den, etr, eti)
+        for w in range(LANES):
+            cost = 0.0
+            for q in range(P):
+                for r in range(L):
+                    cost += (resr[q, r, w] ** 2 + resi[q, r, w] ** 2) / (
+                        etr[r, w] ** 2 + eti[r, w] ** 2
+                    )
+            lm_lane[2, w] = cost
+        total = 0.0
+        for w in range(count):
+            need[0, w] = False
+            row = first + w
+            if flag[0, w]:
+                cost = lm_lane[2, w]
+                decrease = ok[w] and np.isfinite(cost) and cost < lane[1, w]
+                hit = decrease and _rejected(
+                    xr, xi, w, row, band_int, system_factor, start_system,
+                    jump_limit, den_int, den_map, guard_radius, radius, work,
+                )
+                if hit:  # back to the estimate LM started from, stop
+                    flag[2, w] = True
+                    flag[0, w] = False
+                    lane[1, w] = lm_lane[1, w]
+                    for i in range(p):
+                        bsr[i, w] = str_[i, w]
+                        bsi[i, w] = sti[i, w]
+                if decrease and not hit:
+                    change = (lane[1, w] - cost) / lane[1, w]
+                    lane[1, w] = cost
+                    for i in range(p):
+                        bsr[i, w] = xr[i, w]
+                        bsi[i, w] = xi[i, w]
+                    lm_lane[0, w] = max(lm_lane[0, w] / 10.0, 1e-12)
+                    if change < tol:
+                        flag[0, w] = False
+                        flag[1, w] = True
+                    else:
+                        need[0, w] = True
+                else:
+                    lm_lane[0, w] *= 10.0
+                    if lm_lane[0, w] > 1e12:
+                        flag[0, w] = False
+                        flag[1, w] = True
+            total += lane[1, w]
+        lm_history[group, it] = total
+    for later in range(run, iterations):
+        if run > 0:
+            lm_history[group, later] = lm_history[group, run - 1]
+        else:
+            lm_history[group, later] = np.nan
+    return run
+
+
+if AVAILABLE:  # pragma: no branch
+    from numba import njit
+
+    _opts = _compiled._opts
+    _root_in_unit_disk = njit(**_opts)(_root_in_unit_disk_py)
+    _sk_scratch = njit(**_opts)(_sk_scratch_py)
+    _denominator = njit(**_opts)(_denominator_py)
+    _weighted_gram = njit(**_opts)(_weighted_gram_py)
+    _rejected = njit(**_opts)(_rejected_py)
+    _hat_series = njit(**_opts)(_hat_series_py)
+    _gram_to_layout = njit(**_opts)(_gram_to_layout_py)
+    _lm_phase = njit(**_opts)(_lm_phase_py)
+    _sk_group = njit(**_opts)(_sk_group_py)
+    _sk_range = njit(**_opts)(_sk_range_py)
+else:  # pragma: no cover
+    _root_in_unit_disk = _root_in_unit_disk_py
+
+
+def sk_windows(
+    U: np.ndarray,
+    Y: np.ndarray,
+    slow_bins: np.ndarray,
+    theta0: np.ndarray,
+    closed_rss: np.ndarray,
+    start_system: np.ndarray,
+    jump_limit: np.ndarray,
+    radius: np.ndarray,
+    *,
+    weights: np.ndarray,
+    col_base: np.ndarray,
+    tables: dict,
+    n_bands: int,
+    n_centre: int,
+    band_int: np.ndarray,
+    den_int: np.ndarray,
+    den_map: np.ndarray,
+    system_factor: float,
+    guard_radius: float,
+    iterations: int,
+    tol: float,
+    keep_best: bool,
+    exact_tol: float,
+    lm_iterations: int = 0,
+    from_layout: np.ndarray | None = None,
+    n_threads: int | None = None,
+):
+    """Sanathanan-Koerner iterations of every window (compiled, threaded).
+
+    Parameters
+    ----------
+    U : ndarray of shape (P, n_u, N), complex
+    Y : ndarray of shape (P, M), complex
+    slow_bins : ndarray of shape (B,), int
+    theta0 : ndarray of shape (B, p), complex
+        Closed-form parameters, internal basis and order.
+    closed_rss : ndarray of shape (B,)
+        Closed-form weighted cost (the first SK cost).
+    start_system : ndarray of shape (B, n_bands), complex
+    jump_limit : ndarray of shape (B, n_bands)
+    radius : ndarray of shape (B,)
+        ``min(guard_radius, closest closed-form root)``; 0 disables the root
+        test of a window.
+    weights, col_base, tables
+        Column weights, bases and ``moment_tables(..., weighted=True)``.
+    n_bands, n_centre : int
+    band_int : ndarray of shape (n_bands,), int
+        Internal column of the window-centre value of each band.
+    den_int : ndarray of shape (R_e,), int
+        Internal denominator columns.
+    den_map : ndarray of shape (R_e, R_e)
+        Their map to monomial coefficients.
+    system_factor : float
+        ``F`` (the system is ``F`` times the centre value).
+    guard_radius : float
+    iterations : int
+        SK iterations.
+    tol : float
+    keep_best : bool
+    exact_tol : float
+    lm_iterations : int, default=0
+        Guarded LM iterations after SK (:func:`lrmfrf.refinement.
+        _levenberg_marquardt`); ``centre_cov`` is then ``(J^H J)^-1``.
+    from_layout : ndarray of shape (p, p), optional
+        Real ``S`` with ``theta_internal = theta_layout @ S`` (LM damps in the
+        layout basis); needed with ``lm_iterations``.
+    n_threads : int, optional
+
+    Returns
+    -------
+    theta : ndarray of shape (B, p), complex
+        Internal basis and order.
+    cost : ndarray of shape (B,)
+        Output-error cost ``J_LS``.
+    converged, guarded : ndarray of shape (B,), bool
+    centre_cov : ndarray of shape (B, n_centre, n_centre), complex
+        ``(A^H W A)^-1`` at the trailing internal columns, ``W`` from the
+        final estimate.
+    sk_sums, oe_sums : ndarray of shape (n_run + 1,)
+        Sums over the windows of the SK cost and of ``J_LS`` per iteration.
+    lm_sums : ndarray of shape (n_lm_run,)
+        Sums of ``J_LS`` after each LM iteration run.
+    """
+    B, p = theta0.shape
+    t = tables
+    theta_out = np.empty((B, p, 2))
+    cost = np.empty(B)
+    flags = np.empty((B, 2), dtype=np.bool_)
+    cvar = np.empty((B, n_centre, n_centre, 2))
+    n_groups = (B + LANES - 1) // LANES
+    history = np.zeros((n_groups, iterations + 1, 2))
+    n_run = np.zeros(n_groups, dtype=np.int64)
+    lm_history = np.zeros((n_groups, lm_iterations))
+    n_run_lm = np.zeros(n_groups, dtype=np.int64)
+    as_ri = lambda z: np.ascontiguousarray(  # noqa: E731
+        np.asarray(z, dtype=np.complex128)).view(np.float64).reshape(*z.shape, 2)
+    args = (
+        _compiled._as_interleaved(U), _compiled._as_interleaved(Y),
+        np.ascontiguousarray(slow_bins, dtype=np.int64), as_ri(theta0),
+        np.ascontiguousarray(closed_rss, dtype=np.float64), as_ri(start_system),
+        np.ascontiguousarray(jump_limit, dtype=np.float64),
+        np.ascontiguousarray(radius, dtype=np.float64),
+        np.ascontiguousarray(weights, dtype=np.float64),
+        np.ascontiguousarray(col_base, dtype=np.int64), t["data_index"],
+        int(n_bands), int(n_centre), t["q_basis"], t["pair_kind"], t["pair_a"],
+        t["pair_b"], t["pair_nd"], t["pair_off"], t["ent_ptr"], t["ent_mom"],
+        t["ent_coef"], t["ent_conj"], t["ent_const"], t["rhs_ptr"],
+        t["rhs_mom"], t["rhs_coef"], int(t["n_moments"]),
+        np.ascontiguousarray(band_int, dtype=np.int64),
+        np.ascontiguousarray(den_int, dtype=np.int64),
+        np.ascontiguousarray(den_map, dtype=np.float64).reshape(
+            len(den_int), len(den_int)
+        ),
+        float(system_factor), float(guard_radius), int(iterations),
+        int(lm_iterations), float(tol), bool(keep_best), float(exact_tol),
+        theta_out, cost, flags, cvar, history, n_run, lm_history, n_run_lm,
+        *_sparse_rows(np.eye(p) if from_layout is None else from_layout),
+    )
+    tasks = [
+        (start, min(n_groups, start + _GROUPS_PER_TASK))
+        for start in range(0, n_groups, _GROUPS_PER_TASK)
+    ]
+    threads = min(
+        n_threads or _compiled.numba.config.NUMBA_NUM_THREADS, max(len(tasks), 1)
+    )
+    if threads <= 1:
+        _sk_range(*args, 0, n_groups)
+    else:
+        with ThreadPoolExecutor(threads) as pool:
+            list(pool.map(lambda task: _sk_range(*args, *task), tasks))
+    n = int(n_run.max(initial=0))
+    sums = history[:, : n + 1].sum(axis=0)
+    n_lm = int(n_run_lm.max(initial=0))
+    # a group whose LM stopped before running keeps its SK cost sum
+    lm = np.where(np.isnan(lm_history), history[:, -1:, 1], lm_history)
+    return (
+        theta_out.view(np.complex128)[..., 0], cost, flags[:, 0].copy(),
+        flags[:, 1].copy(), cvar.view(np.complex128)[..., 0], sums[:, 0],
+        sums[:, 1], lm[:, :n_lm].sum(axis=0),
+    )
+
+
+def _sparse_rows(matrix: np.ndarray):
+    """Row pointers, columns and values of the nonzeros of a real matrix."""
+    rows, cols = np.nonzero(matrix)
+    ptr = np.searchsorted(rows, np.arange(matrix.shape[0] + 1))
+    return (
+        ptr.astype(np.int64), cols.astype(np.int64),
+        np.ascontiguousarray(matrix[rows, cols], dtype=np.float64),
+    )
