@@ -1,0 +1,268 @@
+"""Covariance of the local-model FRF estimates: Lemma 2 and calibrated routes.
+
+The closed form eq. (linearSolution) solves, per window, ``b = A theta + eps``
+where the rows of ``A`` (eq. Kvector) hold ``x^s U(k+r+fM)``, ``x^s`` and
+``-x^s Y_l(k+r)``. With the true parameters the equation error of row ``r`` is
+exactly ``eps_r = e(x_r) V_l(k+r)``: the output noise times the local
+denominator ``e(x) = 1 + sum_s e_s x^s`` (``e(0) = 1``). The window-centre band
+values are ``G(k+fM) = F theta_f`` and, to first order in the noise,
+
+    G_hat(k+fM) - G(k+fM) = F s_f^H eps,    s_f = A (A^H A)^-1 i_f,
+
+(the proof of Lemma 2 of the paper). The routes below differ in what they
+assume about ``eps``:
+
+``"lemma2"``
+    The paper's eq. (Variance): ``eps`` white with the variance of the
+    residual over ``q`` degrees of freedom, ``F^2 (A^H A)^-1 ||r||^2 / q``.
+``"eiv"``
+    Errors in variables: ``eps_r = e(x_r) V_r`` is heteroscedastic with
+    variance ``|e(x_r)|^2 sigma^2``; the sandwich
+    ``F^2 sigma^2 S^H diag(|e(x_r)|^2) S`` with the estimated denominator, and
+    ``sigma^2`` from the residual over its expected size,
+    ``||r||^2 / sum_r |e(x_r)|^2 (1 - h_r)`` (``h_r`` the leverages), which is
+    unbiased for that noise model to first order. It equals ``"lemma2"`` when
+    ``den_degree == 0`` (``e == 1``, ``sum_r (1 - h_r) = q``).
+``"hc"``
+    Heteroscedasticity-consistent (HC2) sandwich with the residuals
+    themselves, ``F^2 S^H diag(|r_r|^2 / (1 - h_r)) S``.
+``"eiv_pooled"``
+    ``"eiv"`` with ``sigma^2`` pooled over the ``2n+1`` neighbouring windows
+    (the noise spectrum is smooth over a window, so its estimate may borrow
+    the residuals of the neighbours): more degrees of freedom, the same
+    expectation.
+
+References
+----------
+M. van Haren, L. Blanken, K. Classens, T. Oomen, "Local Rational Modeling for
+Identification Beyond the Nyquist Frequency: Applied to a Prototype Wafer
+Stage", 2024 (Lemma 2, eq. Variance). R. Pintelon and J. Schoukens, System
+Identification: A Frequency Domain Approach, 2nd ed., Wiley, 2012 (Appendix
+7.B, the residual noise estimate). J. G. MacKinnon and H. White, "Some
+heteroskedasticity-consistent covariance matrix estimators with improved
+finite sample properties", J. Econometrics 29 (1985) (HC2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .solvers import qr_chunk_size
+from .windows import LocalModelLayout, local_regressor, window_offsets
+
+__all__ = [
+    "STD_METHODS",
+    "VarianceTerms",
+    "variance_terms",
+    "band_covariance",
+    "pooled_noise_variance",
+]
+
+#: Routes of :func:`band_covariance`.
+STD_METHODS = ("lemma2", "eiv", "hc", "eiv_pooled")
+
+
+@dataclass
+class VarianceTerms:
+    """Per-window ingredients of every covariance route.
+
+    All arrays are NaN at windows that are not well posed.
+
+    Attributes
+    ----------
+    gram_lead : ndarray of shape (B, n_bands, n_bands), complex
+        ``S^H S = [(A^H A)^-1]`` at the window-centre band columns.
+    eiv_lead : ndarray of shape (B, n_bands, n_bands), complex
+        ``S^H diag(|e(x_r)|^2) S``.
+    hc_lead : ndarray of shape (B, n_bands, n_bands), complex
+        ``S^H diag(|r_r|^2 / (1 - h_r)) S``.
+    rss : ndarray of shape (B,)
+        ``||r||^2`` of the closed form.
+    eiv_trace : ndarray of shape (B,)
+        ``sum_r |e(x_r)|^2 (1 - h_r)``: ``E ||r||^2 / sigma^2`` under the
+        errors-in-variables noise model, to first order.
+    dof : int
+        ``q``.
+    """
+
+    gram_lead: np.ndarray
+    eiv_lead: np.ndarray
+    hc_lead: np.ndarray
+    rss: np.ndarray
+    eiv_trace: np.ndarray
+    dof: int
+
+
+def variance_terms(
+    U: np.ndarray,
+    Y: np.ndarray,
+    layout: LocalModelLayout,
+    theta: np.ndarray,
+    slow_bins: np.ndarray,
+    *,
+    chunk_size: int | None = None,
+) -> VarianceTerms:
+    """Compute the :class:`VarianceTerms` of the closed-form local models.
+
+    Parameters
+    ----------
+    U : ndarray of shape (P, n_u N), complex
+        DFT of the fast inputs (as for
+        :func:`lrmfrf.local_models.fit_local_models`).
+    Y : ndarray of shape (P, M), complex
+        DFT of one slow output channel.
+    layout : LocalModelLayout
+    theta : ndarray of shape (B, n_params), complex
+        Closed-form parameters (``LocalModelFit.theta``, monomial, layout
+        order); NaN rows give NaN terms.
+    slow_bins : ndarray of shape (B,), int
+        Window centres of ``theta``.
+    chunk_size : int, optional
+        Windows per batch (bounds the memory of the regressors).
+
+    Returns
+    -------
+    VarianceTerms
+    """
+    slow_bins = np.asarray(slow_bins, dtype=int)
+    chunk = qr_chunk_size(layout) if chunk_size is None else max(1, chunk_size)
+    parts = [
+        _terms_of_chunk(U, Y, layout, theta[s : s + chunk], slow_bins[s : s + chunk])
+        for s in range(0, slow_bins.size, chunk)
+    ]
+    joined = [np.concatenate(arrays) for arrays in zip(*parts, strict=True)]
+    return VarianceTerms(*joined, dof=layout.dof)
+
+
+def _terms_of_chunk(U, Y, layout, theta, slow_bins):
+    nb = layout.n_bands
+    A, b = local_regressor(U, Y, slow_bins, layout)
+    good = np.all(np.isfinite(theta), axis=1)
+    theta0 = np.where(good[:, None], theta, 0.0)
+    residual = b - np.einsum("blp,bp->bl", A, theta0)
+    # equilibrated QR: S = A (A^H A)^-1 at the centre columns is Q R^-H
+    norms = np.linalg.norm(A, axis=1)
+    norms = np.where(norms > np.finfo(float).tiny, norms, 1.0)
+    Q, R = np.linalg.qr(A / norms[:, None, :])
+    R = np.where(good[:, None, None], R, np.eye(R.shape[-1]))
+    R_inv = np.linalg.inv(R)
+    S = np.einsum("blk,bfk->blf", Q, R_inv[:, :nb, :].conj()) / norms[:, None, :nb]
+    leverage = np.sum(np.abs(Q) ** 2, axis=2)
+    e_weight = np.abs(_denominator_on_window(theta0, layout)) ** 2
+    P = layout.n_experiments
+    e_weight = np.tile(e_weight, (1, P))  # rows are experiment-major
+    rss = np.sum(np.abs(residual) ** 2, axis=1)
+    gram_lead = np.einsum("blf,blg->bfg", S.conj(), S)
+    eiv_lead = np.einsum("blf,bl,blg->bfg", S.conj(), e_weight, S)
+    hc_weight = np.abs(residual) ** 2 / np.maximum(1.0 - leverage, 1e-12)
+    hc_lead = np.einsum("blf,bl,blg->bfg", S.conj(), hc_weight, S)
+    eiv_trace = np.sum(e_weight * (1.0 - leverage), axis=1)
+    out = [gram_lead, eiv_lead, hc_lead, rss, eiv_trace]
+    for arr in out:
+        arr[~good] = np.nan
+    return out
+
+
+def _denominator_on_window(theta: np.ndarray, layout: LocalModelLayout) -> np.ndarray:
+    """``e(x_r) = 1 + sum_s e_s x_r^s`` on the window, shape (B, 2n+1)."""
+    _, x = window_offsets(layout.half_window)
+    coefficients = theta[:, layout.den_columns]  # e_1..e_Re
+    powers = x[:, None] ** np.arange(1, layout.den_degree + 1)  # (L, Re)
+    return 1.0 + coefficients @ powers.T
+
+
+def pooled_noise_variance(
+    residual_power: np.ndarray, expected: np.ndarray, slow_bins: np.ndarray,
+    n_slow: int, half_width: int,
+) -> np.ndarray:
+    """Pool ``sum ||r||^2 / sum E||r||^2 / sigma^2`` over neighbouring windows.
+
+    Parameters
+    ----------
+    residual_power, expected : ndarray of shape (B,)
+        ``||r||^2`` and its expectation over ``sigma^2`` of each window (NaN:
+        not used).
+    slow_bins : ndarray of shape (B,)
+        Window centres; must be ``0..M//2`` (the other windows are their
+        mirrors, with the same residual power).
+    n_slow : int
+        ``M``.
+    half_width : int
+        Windows ``k - half_width .. k + half_width`` are pooled.
+
+    Returns
+    -------
+    ndarray of shape (B,)
+        NaN where the window itself is NaN.
+    """
+    M = n_slow
+    k = np.arange(M)
+    source = np.minimum(k, M - k)  # mirror window of each slow bin
+    position = np.full(M // 2 + 1, -1)
+    position[slow_bins] = np.arange(slow_bins.size)
+    idx = position[source]
+    ok = (idx >= 0)
+    num_full = np.where(ok, residual_power[np.maximum(idx, 0)], np.nan)
+    den_full = np.where(ok, expected[np.maximum(idx, 0)], np.nan)
+    usable = np.isfinite(num_full) & np.isfinite(den_full)
+    num_full = np.where(usable, num_full, 0.0)
+    den_full = np.where(usable, den_full, 0.0)
+    offsets = np.arange(-half_width, half_width + 1)
+    window = (slow_bins[:, None] + offsets) % M
+    with np.errstate(invalid="ignore", divide="ignore"):
+        pooled = num_full[window].sum(axis=1) / den_full[window].sum(axis=1)
+    pooled[~(np.isfinite(residual_power) & np.isfinite(expected))] = np.nan
+    return pooled
+
+
+def band_covariance(
+    terms: VarianceTerms,
+    layout: LocalModelLayout,
+    method: str = "eiv",
+    *,
+    slow_bins: np.ndarray | None = None,
+    n_slow: int | None = None,
+    noise_variance: np.ndarray | None = None,
+) -> np.ndarray:
+    """Covariance ``E[dG_b conj(dG_c)]`` of the window-centre band values.
+
+    Parameters
+    ----------
+    terms : VarianceTerms
+    layout : LocalModelLayout
+    method : {"lemma2", "eiv", "hc", "eiv_pooled"}, default "eiv"
+        See the module docstring.
+    slow_bins, n_slow : optional
+        Window centres (``0..M//2``) and ``M``; needed by ``"eiv_pooled"``.
+    noise_variance : ndarray of shape (B,), optional
+        A known variance of ``V_l(k)`` instead of the residual estimate
+        (``"eiv"``: ``sigma^2``; ``"lemma2"``: the variance of ``eps``);
+        for studies of the routes.
+
+    Returns
+    -------
+    ndarray of shape (B, n_bands, n_bands), complex
+    """
+    F2 = layout.F**2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if method == "lemma2":
+            s2 = terms.rss / terms.dof if noise_variance is None else noise_variance
+            return F2 * terms.gram_lead * s2[:, None, None]
+        if method == "hc":
+            return F2 * terms.hc_lead
+        if method == "eiv":
+            s2 = terms.rss / terms.eiv_trace
+        elif method == "eiv_pooled":
+            if slow_bins is None or n_slow is None:
+                raise ValueError("method='eiv_pooled' needs slow_bins and n_slow.")
+            s2 = pooled_noise_variance(terms.rss, terms.eiv_trace, slow_bins, n_slow,
+                                       layout.half_window)
+        else:
+            raise ValueError(
+                f"`method` must be one of {STD_METHODS}; got {method!r} instead."
+            )
+        if noise_variance is not None:
+            s2 = noise_variance
+        return F2 * terms.eiv_lead * s2[:, None, None]
