@@ -54,14 +54,25 @@ N_SLOW = 400
 
 
 def stage_systems(seeds, F, *, loops=("closed",), channels=("G_y4", "G_z"),
-                  wafer=True):
-    """``(name, system)`` of every channel of every stage to measure."""
+                  wafer=True, alternate=False):
+    """``(name, system)`` of every channel of every stage to measure.
+
+    With ``alternate``, stage ``i`` (in the order of ``seeds``) contributes one
+    system only: loop ``loops[i % len(loops)]`` and channel
+    ``channels[(i // len(loops)) % len(channels)]`` (all combinations in turn,
+    at a quarter of the cost).
+    """
     out = []
-    for seed in seeds:
-        for loop in loops:
+    for i, seed in enumerate(seeds):
+        pairs = [(lp, ch) for lp in loops for ch in channels]
+        if alternate:
+            pairs = [(loops[i % len(loops)],
+                      channels[(i // len(loops)) % len(channels)])]
+        for loop in sorted({lp for lp, _ in pairs}):
             stage, _ = random_stage(seed, downsampling_factor=F, loop=loop)
-            for ch in channels:
-                out.append((f"s{seed}-{loop}-{ch}", getattr(stage, ch)))
+            for lp, ch in pairs:
+                if lp == loop:
+                    out.append((f"s{seed}-{loop}-{ch}", getattr(stage, ch)))
     if wafer:
         stage = wafer_stage()
         for ch in channels:
@@ -116,11 +127,17 @@ def monte_carlo(system, F, snr_db, n_runs, seed, routes=ROUTES, half_window=None
             variances[r].append(var[r])
     estimates = np.array(estimates)
     mean = estimates.mean(axis=0)
-    mc_std = np.sqrt(np.mean(np.abs(estimates - mean) ** 2, axis=0))
+    # unbiased (n_runs - 1): with the mean estimated from the same runs the
+    # plain mean square is low by (n_runs - 1) / n_runs
+    mc_std = np.sqrt(np.sum(np.abs(estimates - mean) ** 2, axis=0) / (n_runs - 1))
     bins = np.all(np.isfinite(estimates), axis=0) & np.isfinite(truth) & (mc_std > 0)
     bins[0] = False
     error = np.abs(estimates[:, bins] - truth[bins])
-    out = {"bias": float(np.median(np.abs(mean - truth)[bins] / mc_std[bins]))}
+    out = {
+        "bias": float(np.median(np.abs(mean - truth)[bins] / mc_std[bins])),
+        # the best coverage any std can give: within 2 MC std of the truth
+        "mc_cover": float(np.mean(error <= 2 * mc_std[bins])),
+    }
     for r in routes:
         var = np.array(variances[r])[:, bins]
         predicted = np.sqrt(np.mean(var, axis=0))
@@ -131,7 +148,8 @@ def monte_carlo(system, F, snr_db, n_runs, seed, routes=ROUTES, half_window=None
 
 
 def std_table(seeds, snrs, Fs, n_runs, *, routes=ROUTES, loops=("closed",),
-              channels=("G_y4", "G_z"), wafer=True, seed=0, progress=None):
+              channels=("G_y4", "G_z"), wafer=True, alternate=False, seed=0,
+              progress=None):
     """Monte-Carlo rows, one per (F, SNR, system).
 
     Parameters
@@ -146,7 +164,7 @@ def std_table(seeds, snrs, Fs, n_runs, *, routes=ROUTES, loops=("closed",),
         Noise realisations per system and SNR.
     routes : tuple of str
         Routes of :mod:`lrmfrf.uncertainty` and ``"eiv_true"``.
-    loops, channels, wafer
+    loops, channels, wafer, alternate
         Which systems (see :func:`stage_systems`).
     seed : int
         Seed of the multisines and noise.
@@ -156,18 +174,21 @@ def std_table(seeds, snrs, Fs, n_runs, *, routes=ROUTES, loops=("closed",),
     Returns
     -------
     list of dict
-        Keys ``F``, ``snr_db``, ``system``, ``bias`` and per route
+        Keys ``F``, ``snr_db``, ``system``, ``bias`` (median |MC mean - truth|
+        / MC std), ``mc_cover`` (fraction within 2 MC std of the truth: the
+        coverage of a perfectly calibrated std) and per route
         ``<route>_ratio`` and ``<route>_cover``.
     """
     rows = []
     for F in Fs:
         systems = stage_systems(seeds, F, loops=loops, channels=channels,
-                                wafer=wafer)
+                                wafer=wafer, alternate=alternate)
         for snr in snrs:
             for i, (name, system) in enumerate(systems):
                 res = monte_carlo(system, F, snr, n_runs, seed + 1000 * i + F,
                                   routes=routes)
-                row = {"F": F, "snr_db": snr, "system": name, "bias": res["bias"]}
+                row = {"F": F, "snr_db": snr, "system": name, "bias": res["bias"],
+                       "mc_cover": res["mc_cover"]}
                 for r in routes:
                     row[f"{r}_ratio"], row[f"{r}_cover"] = res[r]
                 rows.append(row)
@@ -185,6 +206,11 @@ def summary(rows, routes=ROUTES):
     ]
     for F, snr in keys:
         sel = [r for r in rows if r["F"] == F and r["snr_db"] == snr]
+        best = np.array([r["mc_cover"] for r in sel]) * 100
+        bias = np.median([r["bias"] for r in sel])
+        lines.append(f"{F:>2} {snr:>4g} {'(MC std)':<11} {'':>9} {'':>6} {'':>6} "
+                     f"{'':>12} {best.mean():9.1f}% {best.min():5.1f}%  "
+                     f"bias/std {bias:.2f}")
         for route in routes:
             ratio = np.array([r[f"{route}_ratio"] for r in sel])
             cover = np.array([r[f"{route}_cover"] for r in sel]) * 100
@@ -216,6 +242,8 @@ def main(argv=None) -> int:
                         help="also the open-loop channels of each stage")
     parser.add_argument("--channels", nargs="+", default=["G_y4", "G_z"])
     parser.add_argument("--no-wafer", action="store_true")
+    parser.add_argument("--alternate", action="store_true",
+                        help="one loop/channel per stage, in turn")
     parser.add_argument("--csv", help="write the per-system rows here")
     parser.add_argument("--verbose", action="store_true")
     args = parser.parse_args(argv)
@@ -227,13 +255,14 @@ def main(argv=None) -> int:
             cells = " ".join(f"{r}={row[f'{r}_ratio']:.3f}/{row[f'{r}_cover']:.3f}"
                              for r in args.routes)
             print(f"F={row['F']} {row['snr_db']:g} dB {row['system']}: {cells} "
-                  f"bias={row['bias']:.2f}", flush=True)
+                  f"bias={row['bias']:.2f} mc_cover={row['mc_cover']:.3f}", flush=True)
 
     rows = std_table(_seed_range(args.seeds), args.snr, args.F, args.runs,
                      routes=tuple(args.routes), loops=loops,
                      channels=tuple(args.channels), wafer=not args.no_wafer,
-                     progress=progress)
+                     alternate=args.alternate, progress=progress)
     print(f"seeds {args.seeds}, loops {loops}, channels {args.channels}, "
+          f"alternate {args.alternate}, "
           f"wafer {not args.no_wafer}, {args.runs} runs, M = {N_SLOW}, "
           f"{time.perf_counter() - start:.0f} s")
     print(summary(rows, tuple(args.routes)))
