@@ -44,7 +44,7 @@ from lrmfrf.signals import multisine
 from lrmfrf.simulate import simulate, true_frf
 from lrmfrf.uncertainty import band_covariance, variance_terms
 
-ROUTES = ("lemma2", "eiv", "hc", "eiv_pooled", "eiv_true")
+ROUTES = ("lemma2", "eiv", "hc", "eiv_pooled", "eiv_dof", "eiv_true")
 
 #: Half window per F: the default 18, and 23 at F = 5 (10 residual dof).
 HALF_WINDOW = {2: 18, 3: 18, 4: 18, 5: 23}
@@ -223,6 +223,65 @@ def summary(rows, routes=ROUTES):
     return "\n".join(lines)
 
 
+def refined_monte_carlo(system, F, snr_db, n_runs, seed, refinements):
+    """Std ratio and coverage of refined fits (SK, LM), as they are and with
+    the closed form's errors-in-variables noise variance.
+
+    ``as is``: ``frf_std_`` of the refined fit (linearised at the final
+    estimate, noise variance ``J / dof``). ``eiv noise``: the same shape
+    ``frf_std_**2 / noise_variance_`` times the closed form's
+    ``rss / sum |e|^2 (1 - h)`` of the same record.
+
+    Returns
+    -------
+    dict
+        ``{name: {"as is": (ratio, cover), "eiv noise": (ratio, cover)}}``,
+        with the closed form (default ``std_method``) as ``"closed form"``.
+    """
+    rng = np.random.default_rng(seed)
+    N = N_SLOW * F
+    u = multisine(N, rms=1.44, rng=rng)
+    clean = simulate(system, u, F, snr_db=snr_db, rng=rng)
+    sigma = float(clean.noise_std)
+    truth = true_frf(system, N)
+    n = HALF_WINDOW[F]
+    U = dft(u)[None]
+    settings = {"closed form": {}, **refinements}
+    est = {k: [] for k in settings}
+    var = {k: {"as is": [], "eiv noise": []} for k in settings}
+    for _ in range(n_runs):
+        y = clean.y_l_clean + sigma * rng.standard_normal(N_SLOW)
+        closed = LRMBeyondNyquist(half_window=n).fit(u, y, F)
+        fit = closed.local_fit_
+        terms = variance_terms(U, dft(y)[None], closed.layout_, fit.theta,
+                               fit.slow_bins, with_hc=False)
+        s2_eiv = terms.rss / terms.eiv_trace
+        for name, kwargs in settings.items():
+            e = closed if not kwargs else LRMBeyondNyquist(half_window=n,
+                                                           **kwargs).fit(u, y, F)
+            est[name].append(e.frf_)
+            var[name]["as is"].append(e.frf_std_**2)
+            if not kwargs:  # the closed form's std is already the route's
+                var[name]["eiv noise"].append(e.frf_std_**2)
+                continue
+            scale = np.repeat((s2_eiv / e.noise_variance_)[:, None], F, axis=1)
+            scale = one_sided_fast_grid(scale, N, F, conj=False)
+            var[name]["eiv noise"].append(e.frf_std_**2 * scale)
+    out = {}
+    for name in settings:
+        e = np.array(est[name])
+        mc = np.sqrt(np.sum(np.abs(e - e.mean(0)) ** 2, axis=0) / (n_runs - 1))
+        bins = np.all(np.isfinite(e), axis=0) & np.isfinite(truth) & (mc > 0)
+        bins[0] = False
+        out[name] = {}
+        for kind, values in var[name].items():
+            v = np.array(values)[:, bins]
+            ratio = float(np.median(np.sqrt(v.mean(0)) / mc[bins]))
+            cover = float(np.mean(np.abs(e[:, bins] - truth[bins]) <= 2 * np.sqrt(v)))
+            out[name][kind] = (ratio, cover)
+    return out
+
+
 def _seed_range(text: str) -> list[int]:
     if "-" in text:
         lo, hi = text.split("-")
@@ -246,7 +305,11 @@ def main(argv=None) -> int:
                         help="one loop/channel per stage, in turn")
     parser.add_argument("--csv", help="write the per-system rows here")
     parser.add_argument("--verbose", action="store_true")
+    parser.add_argument("--refined", action="store_true",
+                        help="instead: closed form, SK 30 and SK 30 + LM 300")
     args = parser.parse_args(argv)
+    if args.refined:
+        return _refined_main(args)
     loops = ("closed", "open") if args.open else ("closed",)
     start = time.perf_counter()
 
@@ -271,6 +334,32 @@ def main(argv=None) -> int:
             writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
             writer.writeheader()
             writer.writerows(rows)
+    return 0
+
+
+def _refined_main(args) -> int:
+    import warnings
+
+    refinements = {"SK 30": {"sk_iterations": 30},
+                   "SK 30 + LM 300": {"sk_iterations": 30, "lm_iterations": 300}}
+    loops = ("closed", "open") if args.open else ("closed",)
+    print(f"{'F':>2} {'SNR':>4} {'system':<22} {'fit':<15} {'as is':>13} "
+          f"{'eiv noise':>13}   (ratio / coverage)")
+    for F in args.F:
+        systems = stage_systems(_seed_range(args.seeds), F, loops=loops,
+                                channels=tuple(args.channels),
+                                wafer=not args.no_wafer, alternate=args.alternate)
+        for snr in args.snr:
+            for i, (name, system) in enumerate(systems):
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    res = refined_monte_carlo(system, F, snr, args.runs,
+                                              1000 * i + F, refinements)
+                for fit, kinds in res.items():
+                    cells = " ".join(f"{r:6.3f}/{c * 100:5.1f}%"
+                                     for r, c in kinds.values())
+                    print(f"{F:>2} {snr:>4g} {name:<22} {fit:<15} {cells}",
+                          flush=True)
     return 0
 
 

@@ -26,6 +26,12 @@ assume about ``eps``:
 ``"hc"``
     Heteroscedasticity-consistent (HC2) sandwich with the residuals
     themselves, ``F^2 S^H diag(|r_r|^2 / (1 - h_r)) S``.
+``"eiv_dof"``
+    ``"eiv"`` with the degrees of freedom that the noisy denominator
+    columns absorb removed from the residual's expected size:
+    ``||r||^2 = sigma^2 (sum_r |e|^2 (1 - h_r) - sigma^2 a)``, ``a =
+    tr([(A^H A)^-1]_den D)`` with ``D`` the noise Gram of the denominator
+    columns (``R_e`` dof on pure noise, none without noise).
 ``"eiv_pooled"``
     ``"eiv"`` with ``sigma^2`` pooled over the ``2n+1`` neighbouring windows
     (the noise spectrum is smooth over a window, so its estimate may borrow
@@ -45,15 +51,19 @@ finite sample properties", J. Econometrics 29 (1985) (HC2).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from .local_models import _single_threaded_blas
 from .solvers import qr_chunk_size
 from .windows import LocalModelLayout, local_regressor, window_offsets
 
 __all__ = [
     "STD_METHODS",
+    "DEFAULT_STD_METHOD",
+    "calibrated_local_fit",
+    "check_std_method",
     "VarianceTerms",
     "variance_terms",
     "band_covariance",
@@ -61,7 +71,10 @@ __all__ = [
 ]
 
 #: Routes of :func:`band_covariance`.
-STD_METHODS = ("lemma2", "eiv", "hc", "eiv_pooled")
+STD_METHODS = ("lemma2", "eiv", "hc", "eiv_pooled", "eiv_dof")
+
+#: The route of ``frf_std_`` by default (``benchmarks/generalisation_std.py``).
+DEFAULT_STD_METHOD = "eiv"
 
 
 @dataclass
@@ -80,6 +93,10 @@ class VarianceTerms:
         ``S^H diag(|r_r|^2 / (1 - h_r)) S``.
     rss : ndarray of shape (B,)
         ``||r||^2`` of the closed form.
+    absorbed : ndarray of shape (B,)
+        ``tr([(A^H A)^-1]_den D)``, ``D_st = sum_r x_r^(s+t) |e(x_r)|^2``:
+        times ``sigma^2``, the residual degrees of freedom the noisy
+        denominator columns absorb (``R_e`` on pure noise).
     eiv_trace : ndarray of shape (B,)
         ``sum_r |e(x_r)|^2 (1 - h_r)``: ``E ||r||^2 / sigma^2`` under the
         errors-in-variables noise model, to first order.
@@ -92,6 +109,7 @@ class VarianceTerms:
     hc_lead: np.ndarray
     rss: np.ndarray
     eiv_trace: np.ndarray
+    absorbed: np.ndarray
     dof: int
 
 
@@ -103,6 +121,7 @@ def variance_terms(
     slow_bins: np.ndarray,
     *,
     chunk_size: int | None = None,
+    with_hc: bool = True,
 ) -> VarianceTerms:
     """Compute the :class:`VarianceTerms` of the closed-form local models.
 
@@ -121,6 +140,9 @@ def variance_terms(
         Window centres of ``theta``.
     chunk_size : int, optional
         Windows per batch (bounds the memory of the regressors).
+    with_hc : bool, default True
+        Compute ``hc_lead`` and ``absorbed`` (the routes "hc" and "eiv_dof";
+        NaN otherwise).
 
     Returns
     -------
@@ -128,15 +150,18 @@ def variance_terms(
     """
     slow_bins = np.asarray(slow_bins, dtype=int)
     chunk = qr_chunk_size(layout) if chunk_size is None else max(1, chunk_size)
-    parts = [
-        _terms_of_chunk(U, Y, layout, theta[s : s + chunk], slow_bins[s : s + chunk])
-        for s in range(0, slow_bins.size, chunk)
-    ]
+    # many small matrix products: threaded BLAS only costs on a busy machine
+    with _single_threaded_blas():
+        parts = [
+            _terms_of_chunk(U, Y, layout, theta[s : s + chunk],
+                            slow_bins[s : s + chunk], with_hc)
+            for s in range(0, slow_bins.size, chunk)
+        ]
     joined = [np.concatenate(arrays) for arrays in zip(*parts, strict=True)]
     return VarianceTerms(*joined, dof=layout.dof)
 
 
-def _terms_of_chunk(U, Y, layout, theta, slow_bins):
+def _terms_of_chunk(U, Y, layout, theta, slow_bins, with_hc):
     nb = layout.n_bands
     A, b = local_regressor(U, Y, slow_bins, layout)
     good = np.all(np.isfinite(theta), axis=1)
@@ -147,21 +172,35 @@ def _terms_of_chunk(U, Y, layout, theta, slow_bins):
     norms = np.linalg.norm(A, axis=1)
     norms = np.where(norms > np.finfo(float).tiny, norms, 1.0)
     A_eq = A / norms[:, None, :]
-    gram = np.conj(np.swapaxes(A_eq, 1, 2)) @ A_eq
+    # contiguous operands: numpy's stacked matmul uses BLAS only for them
+    gram = np.ascontiguousarray(np.conj(np.swapaxes(A_eq, 1, 2))) @ A_eq
     gram = np.where(good[:, None, None], gram, np.eye(gram.shape[-1]))
-    AG = A_eq @ np.linalg.inv(gram)  # (B, L, p)
-    S = AG[:, :, :nb] / norms[:, None, :nb]
+    gram_inv = np.linalg.inv(gram)
+    AG = A_eq @ gram_inv  # (B, L, p)
+    S = np.ascontiguousarray(AG[:, :, :nb] / norms[:, None, :nb])
     leverage = np.sum((AG * A_eq.conj()).real, axis=2)
     e_weight = np.abs(_denominator_on_window(theta0, layout)) ** 2
     P = layout.n_experiments
     e_weight = np.tile(e_weight, (1, P))  # rows are experiment-major
     rss = np.sum(np.abs(residual) ** 2, axis=1)
-    gram_lead = np.einsum("blf,blg->bfg", S.conj(), S)
-    eiv_lead = np.einsum("blf,bl,blg->bfg", S.conj(), e_weight, S)
-    hc_weight = np.abs(residual) ** 2 / np.maximum(1.0 - leverage, 1e-12)
-    hc_lead = np.einsum("blf,bl,blg->bfg", S.conj(), hc_weight, S)
+    S_h = np.ascontiguousarray(np.conj(np.swapaxes(S, 1, 2)))
+    gram_lead = S_h @ S
+    eiv_lead = (S_h * e_weight[:, None, :]) @ S
+    if with_hc:
+        hc_weight = np.abs(residual) ** 2 / np.maximum(1.0 - leverage, 1e-12)
+        hc_lead = (S_h * hc_weight[:, None, :]) @ S
+    else:
+        hc_lead = np.full_like(gram_lead, np.nan)
     eiv_trace = np.sum(e_weight * (1.0 - leverage), axis=1)
-    out = [gram_lead, eiv_lead, hc_lead, rss, eiv_trace]
+    absorbed = np.full(rss.shape, np.nan)
+    if with_hc:  # the study's extras: also the absorbed dof of "eiv_dof"
+        den = layout.den_columns
+        _, x = window_offsets(layout.half_window)
+        powers = np.tile(x[:, None] ** np.arange(1, layout.den_degree + 1), (P, 1))
+        noise_gram = np.einsum("ls,bl,lt->bst", powers, e_weight, powers)
+        den_inv = gram_inv[:, den, den] / (norms[:, den, None] * norms[:, None, den])
+        absorbed = np.real(np.einsum("bst,bts->b", den_inv, noise_gram))
+    out = [gram_lead, eiv_lead, hc_lead, rss, eiv_trace, absorbed]
     for arr in out:
         arr[~good] = np.nan
     return out
@@ -256,6 +295,11 @@ def band_covariance(
             return F2 * terms.hc_lead
         if method == "eiv":
             s2 = terms.rss / terms.eiv_trace
+        elif method == "eiv_dof":
+            # rss = s2 (trace - s2 absorbed): the root that tends to rss/trace
+            t, a = terms.eiv_trace, terms.absorbed
+            disc = np.maximum(t**2 - 4 * a * terms.rss, 0.25 * t**2)
+            s2 = 2 * terms.rss / (t + np.sqrt(disc))
         elif method == "eiv_pooled":
             if slow_bins is None or n_slow is None:
                 raise ValueError("method='eiv_pooled' needs slow_bins and n_slow.")
@@ -268,3 +312,52 @@ def band_covariance(
         if noise_variance is not None:
             s2 = noise_variance
         return F2 * terms.eiv_lead * s2[:, None, None]
+
+
+def check_std_method(value, name: str = "std_method") -> str:
+    """Check an estimator's ``std_method`` (a route of :data:`STD_METHODS`)."""
+    if not isinstance(value, str) or value not in STD_METHODS:
+        raise ValueError(
+            f"`{name}` must be one of {STD_METHODS}; got {value!r} instead. Use "
+            f"{DEFAULT_STD_METHOD!r} (the default) or 'lemma2' for the paper's "
+            "eq. (Variance)."
+        )
+    return value
+
+
+def calibrated_local_fit(U, Y, layout: LocalModelLayout, local_fit, method: str):
+    """The closed-form fit with the band (co)variances of route ``method``.
+
+    Parameters
+    ----------
+    U : ndarray of shape (P, n_u N), complex
+    Y : ndarray of shape (P, M), complex
+        The spectra the closed form was fitted on.
+    layout : LocalModelLayout
+    local_fit : lrmfrf.local_models.LocalModelFit
+        Closed form on ``U``, ``Y`` (its ``system_var`` and ``system_cov``
+        are Lemma 2's).
+    method : str
+        A route of :data:`STD_METHODS`.
+
+    Returns
+    -------
+    LocalModelFit
+        ``local_fit`` itself for ``"lemma2"`` or zero residual degrees of
+        freedom (the variance is then NaN by any route); otherwise a copy with
+        ``system_var`` and ``system_cov`` (when present) replaced. The noise
+        variance and the parameters are unchanged.
+    """
+    if method == "lemma2" or layout.dof <= 0:
+        return local_fit
+    terms = variance_terms(U, Y, layout, local_fit.theta, local_fit.slow_bins,
+                           with_hc=method in ("hc", "eiv_dof"))
+    cov = band_covariance(terms, layout, method, slow_bins=local_fit.slow_bins,
+                          n_slow=Y.shape[1])
+    cov[~local_fit.well_posed] = np.nan
+    var = np.real(np.diagonal(cov, axis1=1, axis2=2)).copy()
+    return replace(
+        local_fit,
+        system_var=var,
+        system_cov=None if local_fit.system_cov is None else cov,
+    )

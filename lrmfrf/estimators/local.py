@@ -30,6 +30,7 @@ from ..local_models import (
     scale_by_power_of_two,
 )
 from ..refinement import refine_local_models
+from ..uncertainty import DEFAULT_STD_METHOD, calibrated_local_fit, check_std_method
 from ..windows import LocalModelLayout
 from ._base import _BaseFRFEstimator, _normalise_in_place
 
@@ -146,7 +147,11 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         for o in range(n_y):  # one local problem (one denominator) per output row
             Y_o = Y[:, o, :]
             local_fit = fit_local_models(U, Y_o, layout, return_cov=True)
-            fits.append(self._refine(U, Y_o, layout, local_fit, params, y_exponent))
+            fit = self._refine(U, Y_o, layout, local_fit, params, y_exponent)
+            if fit is local_fit:  # closed form: the std route (lrmfrf.uncertainty)
+                method = params.get("std_method", "lemma2")
+                fit = calibrated_local_fit(U, Y_o, layout, fit, method)
+            fits.append(fit)
         self._set_fitted(
             fits, layout, N, M, F, P, sample_time, u_exponent, y_exponent
         )
@@ -285,6 +290,16 @@ class LRMBeyondNyquist(_LocalModelEstimator):
     verbose : bool, default=False
         Show a progress bar over the chunks of windows during refinement
         (long records; needs tqdm).
+    std_method : {"eiv", "lemma2", "hc", "eiv_pooled"}, default="eiv"
+        How ``frf_std_`` and ``frf_cov_`` of the closed form are computed
+        (:mod:`lrmfrf.uncertainty`, ``docs/method.md`` section 5).
+        ``"eiv"``: the errors-in-variables sandwich, whose equation noise is
+        the output noise times the local denominator, with the noise variance
+        from the residual over its expected size (calibrated to about 1.0x
+        the Monte-Carlo std on random stages); ``"lemma2"``: the paper's
+        eq. (Variance), the default before 0.3 (about 0.85-0.9x);
+        ``"hc"``, ``"eiv_pooled"``: the other routes studied. Refined fits
+        (``sk_iterations``, ``lm_iterations``) keep their linearised variance.
 
     Attributes
     ----------
@@ -299,7 +314,8 @@ class LRMBeyondNyquist(_LocalModelEstimator):
         local problem per window: the local models of all inputs over all
         ``F`` bands with one denominator and one transient per experiment.
     frf_std_ : ndarray of shape (N//2+1,) or (n_y, n_u, N//2+1)
-        Standard deviation of ``frf_`` (Lemma 2, ``sqrt(E|G_hat - G|^2)``).
+        Standard deviation of ``frf_``, ``sqrt(E|G_hat - G|^2)``, from the
+        route ``std_method`` (Lemma 2 with ``std_method="lemma2"``).
     frf_cov_ : ndarray of shape (n_y, n_u, n_u, N//2+1), complex
         Always 4-D: ``E[dG_oi conj(dG_oj)]`` between the entries of one output
         row at each fast bin (Lemma 2 per output row); ``frf_std_ ==
@@ -401,6 +417,7 @@ class LRMBeyondNyquist(_LocalModelEstimator):
         "guard": partial(check_positive_float, allow_none=True),
         "jump": partial(check_positive_float, allow_none=True),
         "verbose": check_bool,
+        "std_method": check_std_method,
     }
 
     def __init__(
@@ -416,11 +433,13 @@ class LRMBeyondNyquist(_LocalModelEstimator):
         guard: float | None = 0.5,
         jump: float | None = 5.0,
         verbose: bool = False,
+        std_method: str = DEFAULT_STD_METHOD,
     ):
         self.half_window = half_window
         self.num_degree = num_degree
         self.transient_degree = transient_degree
         self.den_degree = den_degree
+        self.std_method = std_method
         self.sk_iterations = sk_iterations
         self.lm_iterations = lm_iterations
         self.tol = tol
