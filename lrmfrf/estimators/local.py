@@ -332,8 +332,9 @@ class LRMBeyondNyquist(_LocalModelEstimator):
         dof_`` of the weighted problem. With ``den_degree > 0`` the output
         sits in the regressor (errors-in-variables) and the fit absorbs part
         of the noise, so this is biased low (on pure noise about 0.3x for
-        R_e = 7; with a system to fit, ``frf_std_`` is still 0.85-0.9x the
-        Monte-Carlo std on the wafer stage).
+        R_e = 7). It estimates the variance of the weighted equation error
+        ``e(x) V_l``; ``frf_std_`` (``std_method="eiv"``) uses its own
+        estimate of the variance of ``V_l`` (:mod:`lrmfrf.uncertainty`).
     transient_ : ndarray of shape (M//2+1,) or (P, M//2+1), complex
         Transient term in the slow output DFT at each window centre; (P, n_y,
         M//2+1) when not SISO.
@@ -379,9 +380,10 @@ class LRMBeyondNyquist(_LocalModelEstimator):
     about 84 % and the median FRF error by about 9 %; adding LM 300 lowered
     the cost further (to about 13 %) but fitted noise and raised the median
     error by 12-15 % over the closed form, so SK alone is recommended. The
-    linearised ``frf_std_`` is 0.87x the Monte-Carlo std after SK (0.85x for
-    the closed form) but only about 0.66x after LM: LM's fit absorbs part of
-    the noise, so its residual underestimates it.
+    linearised ``frf_std_`` is 0.87x the Monte-Carlo std after SK (the
+    closed form's Lemma 2: 0.85x; its default ``std_method="eiv"``: about
+    1.0x) but only about 0.66x after LM: LM's fit absorbs part of the noise,
+    so its residual underestimates it.
 
     References
     ----------
