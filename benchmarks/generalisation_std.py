@@ -364,6 +364,26 @@ def _mimo_main(args) -> int:
     return 0
 
 
+def _speed_main(args) -> int:
+    """Time of a default fit (``std_method="eiv"``) over a Lemma 2 fit."""
+    stage = wafer_stage()
+    print("fit time, std_method='eiv' / 'lemma2' (best of 3, one process)")
+    for N in (1200, 12000, 120000):
+        u = multisine(N, rms=1.44, rng=0)
+        y = simulate(stage.G_z, u, 3, snr_db=45, rng=1).y_l
+        times = {}
+        for method in ("lemma2", "eiv", "lemma2", "eiv"):  # first: warm-up
+            best = np.inf
+            for _ in range(3):
+                start = time.perf_counter()
+                LRMBeyondNyquist(std_method=method).fit(u, y, 3)
+                best = min(best, time.perf_counter() - start)
+            times[method] = best
+        print(f"N = {N:>6}: lemma2 {times['lemma2']:.3f} s, eiv {times['eiv']:.3f} s, "
+              f"ratio {times['eiv'] / times['lemma2']:.1f}", flush=True)
+    return 0
+
+
 def _seed_range(text: str) -> list[int]:
     if "-" in text:
         lo, hi = text.split("-")
@@ -391,7 +411,11 @@ def main(argv=None) -> int:
                         help="instead: closed form, SK 30 and SK 30 + LM 300")
     parser.add_argument("--mimo", action="store_true",
                         help="instead: 2x2 MIMO stages (G[0:2, 0:2])")
+    parser.add_argument("--speed", action="store_true",
+                        help="instead: time of the default std against Lemma 2")
     args = parser.parse_args(argv)
+    if args.speed:
+        return _speed_main(args)
     if args.refined:
         return _refined_main(args)
     if args.mimo:
