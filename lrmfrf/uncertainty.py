@@ -56,7 +56,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .local_models import _single_threaded_blas
-from .solvers import qr_chunk_size
+from .solvers import RANK_TOL, qr_chunk_size
 from .windows import LocalModelLayout, local_regressor, window_offsets
 
 __all__ = [
@@ -72,6 +72,10 @@ __all__ = [
 
 #: Routes of :func:`band_covariance`.
 STD_METHODS = ("lemma2", "eiv", "hc", "eiv_pooled", "eiv_dof")
+
+#: Windows whose equilibrated ``G G^-1`` is further than this from the identity
+#: (max abs) are re-done with the pseudo-inverse of the truncated SVD.
+INVERSE_TOL = 1e-6
 
 #: The route of ``frf_std_`` by default (``benchmarks/generalisation_std.py``).
 DEFAULT_STD_METHOD = "eiv"
@@ -176,6 +180,14 @@ def _terms_of_chunk(U, Y, layout, theta, slow_bins, with_hc):
     gram = np.ascontiguousarray(np.conj(np.swapaxes(A_eq, 1, 2))) @ A_eq
     gram = np.where(good[:, None, None], gram, np.eye(gram.shape[-1]))
     gram_inv = np.linalg.inv(gram)
+    # windows the normal equations cannot invert accurately (a rank-deficient
+    # denominator block on noise-free data, which the solvers keep as well
+    # posed): the pseudo-inverse of the truncated SVD, as the QR solver does
+    identity = np.eye(gram.shape[-1])
+    error = np.max(np.abs(gram @ gram_inv - identity), axis=(1, 2))
+    poor = good & ~(error < INVERSE_TOL)
+    if poor.any():
+        gram_inv[poor] = _pseudo_inverse_gram(A_eq[poor])
     AG = A_eq @ gram_inv  # (B, L, p)
     S = np.ascontiguousarray(AG[:, :, :nb] / norms[:, None, :nb])
     leverage = np.sum((AG * A_eq.conj()).real, axis=2)
@@ -192,6 +204,11 @@ def _terms_of_chunk(U, Y, layout, theta, slow_bins, with_hc):
     else:
         hc_lead = np.full_like(gram_lead, np.nan)
     eiv_trace = np.sum(e_weight * (1.0 - leverage), axis=1)
+    # 0 <= 1 - h_r <= 1 and sum_r (1 - h_r) = q bound the trace by q min w and
+    # q max w; round-off in 1 - h times a large |e|^2 can leave those bounds
+    # (even the sign) on noise-free, nearly interpolated windows
+    q = max(layout.dof, 0)
+    eiv_trace = np.clip(eiv_trace, q * e_weight.min(axis=1), q * e_weight.max(axis=1))
     absorbed = np.full(rss.shape, np.nan)
     if with_hc:  # the study's extras: also the absorbed dof of "eiv_dof"
         den = layout.den_columns
@@ -204,6 +221,15 @@ def _terms_of_chunk(U, Y, layout, theta, slow_bins, with_hc):
     for arr in out:
         arr[~good] = np.nan
     return out
+
+
+def _pseudo_inverse_gram(A_eq: np.ndarray) -> np.ndarray:
+    """``(A^H A)^+`` from the SVD of ``A``, singular values below ``RANK_TOL``
+    times the largest dropped (as :func:`lrmfrf.solvers.solve_local_least_squares`)."""
+    _, s, Vh = np.linalg.svd(A_eq, full_matrices=False)
+    keep = s > RANK_TOL * s[:, :1]
+    inv_s2 = np.where(keep, 1.0 / np.where(keep, s, 1.0) ** 2, 0.0)
+    return np.einsum("bki,bk,bkj->bij", Vh.conj(), inv_s2, Vh)
 
 
 def _denominator_on_window(theta: np.ndarray, layout: LocalModelLayout) -> np.ndarray:
@@ -343,13 +369,16 @@ def calibrated_local_fit(U, Y, layout: LocalModelLayout, local_fit, method: str)
     Returns
     -------
     LocalModelFit
-        ``local_fit`` itself for ``"lemma2"`` or zero residual degrees of
+        ``local_fit`` itself for ``"lemma2"``, for ``"eiv"`` without a
+        denominator (where it is Lemma 2), or for zero residual degrees of
         freedom (the variance is then NaN by any route); otherwise a copy with
         ``system_var`` and ``system_cov`` (when present) replaced. The noise
         variance and the parameters are unchanged.
     """
     if method == "lemma2" or layout.dof <= 0:
         return local_fit
+    if method == "eiv" and layout.den_degree == 0:
+        return local_fit  # e(x) = 1: the sandwich is Lemma 2 (LPM)
     terms = variance_terms(U, Y, layout, local_fit.theta, local_fit.slow_bins,
                            with_hc=method in ("hc", "eiv_dof"))
     cov = band_covariance(terms, layout, method, slow_bins=local_fit.slow_bins,
