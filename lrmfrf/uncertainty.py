@@ -174,17 +174,26 @@ def _terms_of_chunk(U, Y, layout, theta, slow_bins, with_hc):
     # equilibrated normal equations (condition numbers of a few hundred, see
     # docs/method.md): S = A (A^H A)^-1 at the centre columns, leverages
     norms = np.linalg.norm(A, axis=1)
-    norms = np.where(norms > np.finfo(float).tiny, norms, 1.0)
+    zero_column = ~(norms > np.finfo(float).tiny)
+    norms = np.where(zero_column, 1.0, norms)
     A_eq = A / norms[:, None, :]
     # contiguous operands: numpy's stacked matmul uses BLAS only for them
     gram = np.ascontiguousarray(np.conj(np.swapaxes(A_eq, 1, 2))) @ A_eq
-    gram = np.where(good[:, None, None], gram, np.eye(gram.shape[-1]))
-    gram_inv = np.linalg.inv(gram)
+    identity = np.eye(gram.shape[-1])
+    gram = np.where(good[:, None, None], gram, identity)
+    # an exactly-zero column (e.g. the denominator of a zero output) gets a
+    # zero coefficient from the solvers: a unit pivot that couples to nothing
+    gram = np.where(zero_column[:, :, None] | zero_column[:, None, :], 0.0, gram)
+    gram[zero_column[:, :, None] & np.eye(gram.shape[-1], dtype=bool)] = 1.0
+    try:
+        gram_inv = np.linalg.inv(gram)
+    except np.linalg.LinAlgError:  # some window exactly singular: all by SVD
+        gram_inv = np.full_like(gram, np.nan)
     # windows the normal equations cannot invert accurately (a rank-deficient
     # denominator block on noise-free data, which the solvers keep as well
     # posed): the pseudo-inverse of the truncated SVD, as the QR solver does
-    identity = np.eye(gram.shape[-1])
-    error = np.max(np.abs(gram @ gram_inv - identity), axis=(1, 2))
+    with np.errstate(invalid="ignore"):
+        error = np.max(np.abs(gram @ gram_inv - identity), axis=(1, 2))
     poor = good & ~(error < INVERSE_TOL)
     if poor.any():
         gram_inv[poor] = _pseudo_inverse_gram(A_eq[poor])
