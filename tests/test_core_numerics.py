@@ -114,7 +114,9 @@ def test_batched_solver_matches_per_bin_qr_on_noisy_data():
     F, N = 3, 1200
     u = multisine(N, rms=1.44, rng=rng)
     y = simulate_resonant(u, F, noise_std=1e-3, rng=rng)
-    est = LRMBeyondNyquist().fit(u, y, F=F)
+    # Lemma 2 (the solver's variance); the default route is checked in
+    # test_uncertainty.py::test_eiv_sandwich_against_plain_per_window_loops
+    est = LRMBeyondNyquist(std_method="lemma2").fit(u, y, F=F)
     U, Y = np.fft.fft(u), np.fft.fft(y)
     for k in range(N // F // 2 + 1):
         A, b = _independent_regressor(U, Y, k, F, 18, 4, 4, 7)

@@ -564,13 +564,18 @@ def test_candidate_that_destabilises_the_loop_is_skipped(stage):
     The data are the closed loop to the `z` output, the model is the `y4`
     plant, so the search tries large changes; some candidates make the
     closed loop unstable. They must be skipped and counted, not abort the run
-    with an error that blames the user's (stable) model.
+    with an error that blames the user's (stable) model. The search path that
+    meets such candidates on these data is the one with the Lemma 2 std of
+    the bug report (the default std since issue 15 whitens differently).
     """
+    from lrmfrf import LRMBeyondNyquist
+
     data = np.load(Path(lrmfrf.__file__).parent / "data" / "wafer_stage_example.npz")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         report = diagnose(stage.plant[0, 0], data["u"], data["y"], 3,
-                          sample_time=TS, controller=stage.controller, rng=0)
+                          sample_time=TS, controller=stage.controller, rng=0,
+                          estimator=LRMBeyondNyquist(std_method="lemma2"))
     assert report.skipped_candidates, report.summary()
     assert "skipped" in report.summary()
     assert report.to_dict()["skipped_candidates"] == report.skipped_candidates

@@ -34,6 +34,7 @@ from ..local_models import (
 )
 from ..refinement import pool_summaries, refine_local_models, result_summary
 from ..solvers import resolve_backend
+from ..uncertainty import DEFAULT_STD_METHOD, calibrated_local_fit, check_std_method
 from ..windows import LocalModelLayout
 from ._base import _BaseFRFEstimator, _normalise_in_place
 
@@ -171,7 +172,12 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         del u, y, records
         backend = resolve_backend("auto", M // 2 + 1, layout.n_params)
         self._reset_refinement()
-        if self._refines(params):
+        refines = self._refines(params)
+        std_method = params.get("std_method", "lemma2")
+        # refinement and the std routes of lrmfrf.uncertainty other than
+        # Lemma 2 need the whole per-window fit: not streamed
+        whole = refines or std_method != "lemma2"
+        if whole:
             U = spectra.full_inputs()  # (P, n_u N): the F n_u bands
             self._refined_rows = []  # refinement summaries, one per output row
             fits = []
@@ -180,9 +186,13 @@ class _LocalModelEstimator(_BaseFRFEstimator):
                 local_fit = fit_local_models(
                     U, Y_o, layout, return_cov=True, backend=backend
                 )
-                fits.append(
-                    self._refine(U, Y_o, layout, local_fit, params, y_exponent)
-                )
+                if refines:  # refined fits keep their linearised variance
+                    fit = self._refine(U, Y_o, layout, local_fit, params,
+                                       y_exponent)
+                else:  # closed form: the std route (lrmfrf.uncertainty)
+                    fit = calibrated_local_fit(U, Y_o, layout, local_fit,
+                                               std_method)
+                fits.append(fit)
             del U, self._refined_rows
             rows = [[(0, fit)] for fit in fits]
         else:  # streamed: no per-window parameters are kept
@@ -193,7 +203,7 @@ class _LocalModelEstimator(_BaseFRFEstimator):
             ]
         self._set_fitted(rows, layout, N, M, F, P, sample_time, u_exponent,
                          y_exponent)
-        if self._refines(params):
+        if whole:
             fits = [rescale_local_fit(fit, u_exponent, y_exponent) for fit in fits]
             self.local_fit_ = fits[0] if n_u == n_y == 1 else fits
         else:
@@ -326,6 +336,19 @@ class LRMBeyondNyquist(_LocalModelEstimator):
     verbose : bool, default=False
         Show a progress bar over the chunks of windows during refinement
         (long records; needs tqdm).
+    std_method : {"lemma2", "eiv", "hc", "eiv_pooled"}, default="lemma2"
+        How ``frf_std_`` and ``frf_cov_`` of the closed form are computed
+        (:mod:`lrmfrf.uncertainty`, ``docs/method.md`` section 5).
+        ``"lemma2"``: the paper's eq. (Variance) (about 0.76-0.91x the
+        Monte-Carlo std on random stages); ``"eiv"``: the errors-in-variables
+        sandwich, whose equation noise is the output noise times the local
+        denominator, with the noise variance from the residual over its
+        expected size (about 1.0x). ``"eiv"`` is computed in numpy on the
+        whole per-window fit: about 2x the time of a short fit and far more
+        on long records (not streamed in bounded memory), so it is opt-in
+        until it runs in the compiled kernel. ``"hc"``, ``"eiv_pooled"``: the
+        other routes studied. Refined fits (``sk_iterations``,
+        ``lm_iterations``) keep their linearised variance.
 
     Attributes
     ----------
@@ -340,7 +363,8 @@ class LRMBeyondNyquist(_LocalModelEstimator):
         local problem per window: the local models of all inputs over all
         ``F`` bands with one denominator and one transient per experiment.
     frf_std_ : ndarray of shape (N//2+1,) or (n_y, n_u, N//2+1)
-        Standard deviation of ``frf_`` (Lemma 2, ``sqrt(E|G_hat - G|^2)``).
+        Standard deviation of ``frf_``, ``sqrt(E|G_hat - G|^2)``, from the
+        route ``std_method`` (Lemma 2 with ``std_method="lemma2"``).
     frf_cov_ : ndarray of shape (n_y, n_u, n_u, N//2+1), complex
         Always 4-D: ``E[dG_oi conj(dG_oj)]`` between the entries of one output
         row at each fast bin (Lemma 2 per output row); ``frf_std_ ==
@@ -357,8 +381,9 @@ class LRMBeyondNyquist(_LocalModelEstimator):
         dof_`` of the weighted problem. With ``den_degree > 0`` the output
         sits in the regressor (errors-in-variables) and the fit absorbs part
         of the noise, so this is biased low (on pure noise about 0.3x for
-        R_e = 7; with a system to fit, ``frf_std_`` is still 0.85-0.9x the
-        Monte-Carlo std on the wafer stage).
+        R_e = 7). It estimates the variance of the weighted equation error
+        ``e(x) V_l``; ``frf_std_`` (``std_method="eiv"``) uses its own
+        estimate of the variance of ``V_l`` (:mod:`lrmfrf.uncertainty`).
     transient_ : ndarray of shape (M//2+1,) or (P, M//2+1), complex
         Transient term in the slow output DFT at each window centre; (P, n_y,
         M//2+1) when not SISO.
@@ -411,9 +436,10 @@ class LRMBeyondNyquist(_LocalModelEstimator):
     about 84 % and the median FRF error by about 9 %; adding LM 300 lowered
     the cost further (to about 13 %) but fitted noise and raised the median
     error by 12-15 % over the closed form, so SK alone is recommended. The
-    linearised ``frf_std_`` is 0.87x the Monte-Carlo std after SK (0.85x for
-    the closed form) but only about 0.66x after LM: LM's fit absorbs part of
-    the noise, so its residual underestimates it.
+    linearised ``frf_std_`` is 0.87x the Monte-Carlo std after SK (the
+    closed form's Lemma 2: 0.85x; ``std_method="eiv"``: about
+    1.0x) but only about 0.66x after LM: LM's fit absorbs part of the noise,
+    so its residual underestimates it.
 
     References
     ----------
@@ -449,6 +475,7 @@ class LRMBeyondNyquist(_LocalModelEstimator):
         "guard": partial(check_positive_float, allow_none=True),
         "jump": partial(check_positive_float, allow_none=True),
         "verbose": check_bool,
+        "std_method": check_std_method,
     }
 
     def __init__(
@@ -464,11 +491,13 @@ class LRMBeyondNyquist(_LocalModelEstimator):
         guard: float | None = 0.5,
         jump: float | None = 5.0,
         verbose: bool = False,
+        std_method: str = DEFAULT_STD_METHOD,
     ):
         self.half_window = half_window
         self.num_degree = num_degree
         self.transient_degree = transient_degree
         self.den_degree = den_degree
+        self.std_method = std_method
         self.sk_iterations = sk_iterations
         self.lm_iterations = lm_iterations
         self.tol = tol

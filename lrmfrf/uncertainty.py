@@ -1,0 +1,401 @@
+"""Covariance of the local-model FRF estimates: Lemma 2 and calibrated routes.
+
+The closed form eq. (linearSolution) solves, per window, ``b = A theta + eps``
+where the rows of ``A`` (eq. Kvector) hold ``x^s U(k+r+fM)``, ``x^s`` and
+``-x^s Y_l(k+r)``. With the true parameters the equation error of row ``r`` is
+exactly ``eps_r = e(x_r) V_l(k+r)``: the output noise times the local
+denominator ``e(x) = 1 + sum_s e_s x^s`` (``e(0) = 1``). The window-centre band
+values are ``G(k+fM) = F theta_f`` and, to first order in the noise,
+
+    G_hat(k+fM) - G(k+fM) = F s_f^H eps,    s_f = A (A^H A)^-1 i_f,
+
+(the proof of Lemma 2 of the paper). The routes below differ in what they
+assume about ``eps``:
+
+``"lemma2"``
+    The paper's eq. (Variance): ``eps`` white with the variance of the
+    residual over ``q`` degrees of freedom, ``F^2 (A^H A)^-1 ||r||^2 / q``.
+``"eiv"``
+    Errors in variables: ``eps_r = e(x_r) V_r`` is heteroscedastic with
+    variance ``|e(x_r)|^2 sigma^2``; the sandwich
+    ``F^2 sigma^2 S^H diag(|e(x_r)|^2) S`` with the estimated denominator, and
+    ``sigma^2`` from the residual over its expected size,
+    ``||r||^2 / sum_r |e(x_r)|^2 (1 - h_r)`` (``h_r`` the leverages), which is
+    unbiased for that noise model to first order. It equals ``"lemma2"`` when
+    ``den_degree == 0`` (``e == 1``, ``sum_r (1 - h_r) = q``).
+``"hc"``
+    Heteroscedasticity-consistent (HC2) sandwich with the residuals
+    themselves, ``F^2 S^H diag(|r_r|^2 / (1 - h_r)) S``.
+``"eiv_dof"``
+    ``"eiv"`` with the degrees of freedom that the noisy denominator
+    columns absorb removed from the residual's expected size:
+    ``||r||^2 = sigma^2 (sum_r |e|^2 (1 - h_r) - sigma^2 a)``, ``a =
+    tr([(A^H A)^-1]_den D)`` with ``D`` the noise Gram of the denominator
+    columns (``R_e`` dof on pure noise, none without noise).
+``"eiv_pooled"``
+    ``"eiv"`` with ``sigma^2`` pooled over the ``2n+1`` neighbouring windows
+    (the noise spectrum is smooth over a window, so its estimate may borrow
+    the residuals of the neighbours): more degrees of freedom, the same
+    expectation.
+
+References
+----------
+M. van Haren, L. Blanken, K. Classens, T. Oomen, "Local Rational Modeling for
+Identification Beyond the Nyquist Frequency: Applied to a Prototype Wafer
+Stage", 2024 (Lemma 2, eq. Variance). R. Pintelon and J. Schoukens, System
+Identification: A Frequency Domain Approach, 2nd ed., Wiley, 2012 (Appendix
+7.B, the residual noise estimate). J. G. MacKinnon and H. White, "Some
+heteroskedasticity-consistent covariance matrix estimators with improved
+finite sample properties", J. Econometrics 29 (1985) (HC2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .local_models import _single_threaded_blas
+from .solvers import RANK_TOL, qr_chunk_size
+from .windows import LocalModelLayout, local_regressor, window_offsets
+
+__all__ = [
+    "STD_METHODS",
+    "DEFAULT_STD_METHOD",
+    "calibrated_local_fit",
+    "check_std_method",
+    "VarianceTerms",
+    "variance_terms",
+    "band_covariance",
+    "pooled_noise_variance",
+]
+
+#: Routes of :func:`band_covariance`.
+STD_METHODS = ("lemma2", "eiv", "hc", "eiv_pooled", "eiv_dof")
+
+#: Windows whose equilibrated ``G G^-1`` is further than this from the identity
+#: (max abs) are re-done with the pseudo-inverse of the truncated SVD.
+INVERSE_TOL = 1e-6
+
+#: The route of ``frf_std_`` by default (``benchmarks/generalisation_std.py``).
+DEFAULT_STD_METHOD = "lemma2"
+
+
+@dataclass
+class VarianceTerms:
+    """Per-window ingredients of every covariance route.
+
+    All arrays are NaN at windows that are not well posed.
+
+    Attributes
+    ----------
+    gram_lead : ndarray of shape (B, n_bands, n_bands), complex
+        ``S^H S = [(A^H A)^-1]`` at the window-centre band columns.
+    eiv_lead : ndarray of shape (B, n_bands, n_bands), complex
+        ``S^H diag(|e(x_r)|^2) S``.
+    hc_lead : ndarray of shape (B, n_bands, n_bands), complex
+        ``S^H diag(|r_r|^2 / (1 - h_r)) S``.
+    rss : ndarray of shape (B,)
+        ``||r||^2`` of the closed form.
+    absorbed : ndarray of shape (B,)
+        ``tr([(A^H A)^-1]_den D)``, ``D_st = sum_r x_r^(s+t) |e(x_r)|^2``:
+        times ``sigma^2``, the residual degrees of freedom the noisy
+        denominator columns absorb (``R_e`` on pure noise).
+    eiv_trace : ndarray of shape (B,)
+        ``sum_r |e(x_r)|^2 (1 - h_r)``: ``E ||r||^2 / sigma^2`` under the
+        errors-in-variables noise model, to first order.
+    dof : int
+        ``q``.
+    """
+
+    gram_lead: np.ndarray
+    eiv_lead: np.ndarray
+    hc_lead: np.ndarray
+    rss: np.ndarray
+    eiv_trace: np.ndarray
+    absorbed: np.ndarray
+    dof: int
+
+
+def variance_terms(
+    U: np.ndarray,
+    Y: np.ndarray,
+    layout: LocalModelLayout,
+    theta: np.ndarray,
+    slow_bins: np.ndarray,
+    *,
+    chunk_size: int | None = None,
+    with_hc: bool = True,
+) -> VarianceTerms:
+    """Compute the :class:`VarianceTerms` of the closed-form local models.
+
+    Parameters
+    ----------
+    U : ndarray of shape (P, n_u N), complex
+        DFT of the fast inputs (as for
+        :func:`lrmfrf.local_models.fit_local_models`).
+    Y : ndarray of shape (P, M), complex
+        DFT of one slow output channel.
+    layout : LocalModelLayout
+    theta : ndarray of shape (B, n_params), complex
+        Closed-form parameters (``LocalModelFit.theta``, monomial, layout
+        order); NaN rows give NaN terms.
+    slow_bins : ndarray of shape (B,), int
+        Window centres of ``theta``.
+    chunk_size : int, optional
+        Windows per batch (bounds the memory of the regressors).
+    with_hc : bool, default True
+        Compute ``hc_lead`` and ``absorbed`` (the routes "hc" and "eiv_dof";
+        NaN otherwise).
+
+    Returns
+    -------
+    VarianceTerms
+    """
+    slow_bins = np.asarray(slow_bins, dtype=int)
+    chunk = qr_chunk_size(layout) if chunk_size is None else max(1, chunk_size)
+    # many small matrix products: threaded BLAS only costs on a busy machine
+    with _single_threaded_blas():
+        parts = [
+            _terms_of_chunk(U, Y, layout, theta[s : s + chunk],
+                            slow_bins[s : s + chunk], with_hc)
+            for s in range(0, slow_bins.size, chunk)
+        ]
+    joined = [np.concatenate(arrays) for arrays in zip(*parts, strict=True)]
+    return VarianceTerms(*joined, dof=layout.dof)
+
+
+def _terms_of_chunk(U, Y, layout, theta, slow_bins, with_hc):
+    nb = layout.n_bands
+    A, b = local_regressor(U, Y, slow_bins, layout)
+    good = np.all(np.isfinite(theta), axis=1)
+    theta0 = np.where(good[:, None], theta, 0.0)
+    residual = b - np.einsum("blp,bp->bl", A, theta0)
+    # equilibrated normal equations (condition numbers of a few hundred, see
+    # docs/method.md): S = A (A^H A)^-1 at the centre columns, leverages
+    norms = np.linalg.norm(A, axis=1)
+    zero_column = ~(norms > np.finfo(float).tiny)
+    norms = np.where(zero_column, 1.0, norms)
+    A_eq = A / norms[:, None, :]
+    # contiguous operands: numpy's stacked matmul uses BLAS only for them
+    gram = np.ascontiguousarray(np.conj(np.swapaxes(A_eq, 1, 2))) @ A_eq
+    identity = np.eye(gram.shape[-1])
+    gram = np.where(good[:, None, None], gram, identity)
+    # an exactly-zero column (e.g. the denominator of a zero output) gets a
+    # zero coefficient from the solvers: a unit pivot that couples to nothing
+    gram = np.where(zero_column[:, :, None] | zero_column[:, None, :], 0.0, gram)
+    gram[zero_column[:, :, None] & np.eye(gram.shape[-1], dtype=bool)] = 1.0
+    try:
+        gram_inv = np.linalg.inv(gram)
+    except np.linalg.LinAlgError:  # some window exactly singular: all by SVD
+        gram_inv = np.full_like(gram, np.nan)
+    # windows the normal equations cannot invert accurately (a rank-deficient
+    # denominator block on noise-free data, which the solvers keep as well
+    # posed): the pseudo-inverse of the truncated SVD, as the QR solver does
+    with np.errstate(invalid="ignore"):
+        error = np.max(np.abs(gram @ gram_inv - identity), axis=(1, 2))
+    poor = good & ~(error < INVERSE_TOL)
+    if poor.any():
+        gram_inv[poor] = _pseudo_inverse_gram(A_eq[poor])
+    AG = A_eq @ gram_inv  # (B, L, p)
+    S = np.ascontiguousarray(AG[:, :, :nb] / norms[:, None, :nb])
+    leverage = np.sum((AG * A_eq.conj()).real, axis=2)
+    e_weight = np.abs(_denominator_on_window(theta0, layout)) ** 2
+    P = layout.n_experiments
+    e_weight = np.tile(e_weight, (1, P))  # rows are experiment-major
+    rss = np.sum(np.abs(residual) ** 2, axis=1)
+    S_h = np.ascontiguousarray(np.conj(np.swapaxes(S, 1, 2)))
+    gram_lead = S_h @ S
+    eiv_lead = (S_h * e_weight[:, None, :]) @ S
+    if with_hc:
+        hc_weight = np.abs(residual) ** 2 / np.maximum(1.0 - leverage, 1e-12)
+        hc_lead = (S_h * hc_weight[:, None, :]) @ S
+    else:
+        hc_lead = np.full_like(gram_lead, np.nan)
+    eiv_trace = np.sum(e_weight * (1.0 - leverage), axis=1)
+    # 0 <= 1 - h_r <= 1 and sum_r (1 - h_r) = q bound the trace by q min w and
+    # q max w; round-off in 1 - h times a large |e|^2 can leave those bounds
+    # (even the sign) on noise-free, nearly interpolated windows
+    q = max(layout.dof, 0)
+    eiv_trace = np.clip(eiv_trace, q * e_weight.min(axis=1), q * e_weight.max(axis=1))
+    absorbed = np.full(rss.shape, np.nan)
+    if with_hc:  # the study's extras: also the absorbed dof of "eiv_dof"
+        den = layout.den_columns
+        _, x = window_offsets(layout.half_window)
+        powers = np.tile(x[:, None] ** np.arange(1, layout.den_degree + 1), (P, 1))
+        noise_gram = np.einsum("ls,bl,lt->bst", powers, e_weight, powers)
+        den_inv = gram_inv[:, den, den] / (norms[:, den, None] * norms[:, None, den])
+        absorbed = np.real(np.einsum("bst,bts->b", den_inv, noise_gram))
+    out = [gram_lead, eiv_lead, hc_lead, rss, eiv_trace, absorbed]
+    for arr in out:
+        arr[~good] = np.nan
+    return out
+
+
+def _pseudo_inverse_gram(A_eq: np.ndarray) -> np.ndarray:
+    """``(A^H A)^+`` from the SVD of ``A``, singular values below ``RANK_TOL``
+    times the largest dropped (as :func:`lrmfrf.solvers.solve_local_least_squares`)."""
+    _, s, Vh = np.linalg.svd(A_eq, full_matrices=False)
+    keep = s > RANK_TOL * s[:, :1]
+    inv_s2 = np.where(keep, 1.0 / np.where(keep, s, 1.0) ** 2, 0.0)
+    return np.einsum("bki,bk,bkj->bij", Vh.conj(), inv_s2, Vh)
+
+
+def _denominator_on_window(theta: np.ndarray, layout: LocalModelLayout) -> np.ndarray:
+    """``e(x_r) = 1 + sum_s e_s x_r^s`` on the window, shape (B, 2n+1)."""
+    _, x = window_offsets(layout.half_window)
+    coefficients = theta[:, layout.den_columns]  # e_1..e_Re
+    powers = x[:, None] ** np.arange(1, layout.den_degree + 1)  # (L, Re)
+    return 1.0 + coefficients @ powers.T
+
+
+def pooled_noise_variance(
+    residual_power: np.ndarray, expected: np.ndarray, slow_bins: np.ndarray,
+    n_slow: int, half_width: int,
+) -> np.ndarray:
+    """Pool ``sum ||r||^2 / sum E||r||^2 / sigma^2`` over neighbouring windows.
+
+    Parameters
+    ----------
+    residual_power, expected : ndarray of shape (B,)
+        ``||r||^2`` and its expectation over ``sigma^2`` of each window (NaN:
+        not used).
+    slow_bins : ndarray of shape (B,)
+        Window centres; must be ``0..M//2`` (the other windows are their
+        mirrors, with the same residual power).
+    n_slow : int
+        ``M``.
+    half_width : int
+        Windows ``k - half_width .. k + half_width`` are pooled.
+
+    Returns
+    -------
+    ndarray of shape (B,)
+        NaN where the window itself is NaN.
+    """
+    M = n_slow
+    k = np.arange(M)
+    source = np.minimum(k, M - k)  # mirror window of each slow bin
+    position = np.full(M // 2 + 1, -1)
+    position[slow_bins] = np.arange(slow_bins.size)
+    idx = position[source]
+    ok = (idx >= 0)
+    num_full = np.where(ok, residual_power[np.maximum(idx, 0)], np.nan)
+    den_full = np.where(ok, expected[np.maximum(idx, 0)], np.nan)
+    usable = np.isfinite(num_full) & np.isfinite(den_full)
+    num_full = np.where(usable, num_full, 0.0)
+    den_full = np.where(usable, den_full, 0.0)
+    offsets = np.arange(-half_width, half_width + 1)
+    window = (slow_bins[:, None] + offsets) % M
+    with np.errstate(invalid="ignore", divide="ignore"):
+        pooled = num_full[window].sum(axis=1) / den_full[window].sum(axis=1)
+    pooled[~(np.isfinite(residual_power) & np.isfinite(expected))] = np.nan
+    return pooled
+
+
+def band_covariance(
+    terms: VarianceTerms,
+    layout: LocalModelLayout,
+    method: str = "eiv",
+    *,
+    slow_bins: np.ndarray | None = None,
+    n_slow: int | None = None,
+    noise_variance: np.ndarray | None = None,
+) -> np.ndarray:
+    """Covariance ``E[dG_b conj(dG_c)]`` of the window-centre band values.
+
+    Parameters
+    ----------
+    terms : VarianceTerms
+    layout : LocalModelLayout
+    method : {"lemma2", "eiv", "hc", "eiv_pooled"}, default "eiv"
+        See the module docstring.
+    slow_bins, n_slow : optional
+        Window centres (``0..M//2``) and ``M``; needed by ``"eiv_pooled"``.
+    noise_variance : ndarray of shape (B,), optional
+        A known variance of ``V_l(k)`` instead of the residual estimate
+        (``"eiv"``: ``sigma^2``; ``"lemma2"``: the variance of ``eps``);
+        for studies of the routes.
+
+    Returns
+    -------
+    ndarray of shape (B, n_bands, n_bands), complex
+    """
+    F2 = layout.F**2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if method == "lemma2":
+            s2 = terms.rss / terms.dof if noise_variance is None else noise_variance
+            return F2 * terms.gram_lead * s2[:, None, None]
+        if method == "hc":
+            return F2 * terms.hc_lead
+        if method == "eiv":
+            s2 = terms.rss / terms.eiv_trace
+        elif method == "eiv_dof":
+            # rss = s2 (trace - s2 absorbed): the root that tends to rss/trace
+            t, a = terms.eiv_trace, terms.absorbed
+            disc = np.maximum(t**2 - 4 * a * terms.rss, 0.25 * t**2)
+            s2 = 2 * terms.rss / (t + np.sqrt(disc))
+        elif method == "eiv_pooled":
+            if slow_bins is None or n_slow is None:
+                raise ValueError("method='eiv_pooled' needs slow_bins and n_slow.")
+            s2 = pooled_noise_variance(terms.rss, terms.eiv_trace, slow_bins, n_slow,
+                                       layout.half_window)
+        else:
+            raise ValueError(
+                f"`method` must be one of {STD_METHODS}; got {method!r} instead."
+            )
+        if noise_variance is not None:
+            s2 = noise_variance
+        return F2 * terms.eiv_lead * s2[:, None, None]
+
+
+def check_std_method(value, name: str = "std_method") -> str:
+    """Check an estimator's ``std_method`` (a route of :data:`STD_METHODS`)."""
+    if not isinstance(value, str) or value not in STD_METHODS:
+        raise ValueError(
+            f"`{name}` must be one of {STD_METHODS}; got {value!r} instead. Use "
+            f"{DEFAULT_STD_METHOD!r} (the default) or 'lemma2' for the paper's "
+            "eq. (Variance)."
+        )
+    return value
+
+
+def calibrated_local_fit(U, Y, layout: LocalModelLayout, local_fit, method: str):
+    """The closed-form fit with the band (co)variances of route ``method``.
+
+    Parameters
+    ----------
+    U : ndarray of shape (P, n_u N), complex
+    Y : ndarray of shape (P, M), complex
+        The spectra the closed form was fitted on.
+    layout : LocalModelLayout
+    local_fit : lrmfrf.local_models.LocalModelFit
+        Closed form on ``U``, ``Y`` (its ``system_var`` and ``system_cov``
+        are Lemma 2's).
+    method : str
+        A route of :data:`STD_METHODS`.
+
+    Returns
+    -------
+    LocalModelFit
+        ``local_fit`` itself for ``"lemma2"``, for ``"eiv"`` without a
+        denominator (where it is Lemma 2), or for zero residual degrees of
+        freedom (the variance is then NaN by any route); otherwise a copy with
+        ``system_var`` and ``system_cov`` (when present) replaced. The noise
+        variance and the parameters are unchanged.
+    """
+    if method == "lemma2" or layout.dof <= 0:
+        return local_fit
+    if method == "eiv" and layout.den_degree == 0:
+        return local_fit  # e(x) = 1: the sandwich is Lemma 2 (LPM)
+    terms = variance_terms(U, Y, layout, local_fit.theta, local_fit.slow_bins,
+                           with_hc=method in ("hc", "eiv_dof"))
+    cov = band_covariance(terms, layout, method, slow_bins=local_fit.slow_bins,
+                          n_slow=Y.shape[1])
+    cov[~local_fit.well_posed] = np.nan
+    var = np.real(np.diagonal(cov, axis1=1, axis2=2)).copy()
+    return replace(
+        local_fit,
+        system_var=var,
+        system_cov=None if local_fit.system_cov is None else cov,
+    )
