@@ -548,3 +548,111 @@ def test_gaic_picks_near_the_oracle_on_held_out_random_stages():
             picked = np.nanmedian(np.abs(cv.frf_[1:] - G) / np.abs(G))
             ratios.append(picked / min(errors))
     assert np.mean(ratios) <= 1.25
+
+
+# --- several inputs and outputs (issue 13 convention, issue 15 item 3) ---------
+
+
+def _mimo_record(rng, n_samples=N, noise_std=0.005):
+    """One record of two inputs (independent multisines) and two outputs:
+    output 0 the resonant test system of input 0 plus 0.5 x input 1 through
+    it, output 1 the reverse (channels first)."""
+    u = np.array([multisine(n_samples, rng=rng) for _ in range(2)])
+    y0 = simulate_resonant(u, F, 0.0, rng)  # (2, M), one row per input
+    noise = noise_std * rng.standard_normal((2, n_samples // F))
+    y = np.array([y0[0] + 0.5 * y0[1], 0.5 * y0[0] + y0[1]]) + noise
+    return u, y
+
+
+def test_mimo_criterion_pools_the_output_rows():
+    """Each output row is scored as its own local problem: the per-window
+    values of a two-output record are those of each output alone; with the
+    same output twice the pooled criterion equals the one-output criterion
+    (a mean over twice the same windows), and swapping the outputs swaps the
+    rows and leaves the criterion unchanged."""
+    rng = np.random.default_rng(5)
+    u, y = _mimo_record(rng)
+    U = np.fft.fft(u, axis=-1).reshape(1, 2 * N)
+    Y = np.fft.fft(y, axis=-1)[None]  # (P, n_y, M)
+    layout = LocalModelLayout(F=F, half_window=12, num_degree=1,
+                              transient_degree=1, den_degree=2, n_inputs=2)
+    for criterion in ("gaic", "aicc", "gcv", "press"):
+        both = local_model_criterion(U, Y, layout, criterion=criterion)
+        rows = [local_model_criterion(U, Y[:, o], layout, criterion=criterion)
+                for o in range(2)]
+        assert both.per_bin.shape == (2, M // 2 + 1)
+        for o in range(2):
+            np.testing.assert_array_equal(both.per_bin[o], rows[o].per_bin)
+        assert both.n_invalid == rows[0].n_invalid + rows[1].n_invalid
+        twice = local_model_criterion(U, Y[:, [0, 0]], layout,
+                                      criterion=criterion)
+        assert twice.value == pytest.approx(rows[0].value, rel=1e-12)
+        swapped = local_model_criterion(U, Y[:, ::-1], layout,
+                                        criterion=criterion)
+        assert swapped.value == pytest.approx(both.value, rel=1e-12)
+        assert min(r.value for r in rows) <= both.value + 1e-12 * abs(both.value)
+        assert both.value <= max(r.value for r in rows) + 1e-12 * abs(both.value)
+
+
+def test_mimo_cv_refits_the_chosen_setting_on_the_whole_matrix():
+    rng = np.random.default_rng(6)
+    u, y = _mimo_record(rng)
+    cv = LRMBeyondNyquistCV(**SMALL_GRID).fit(u, y, F)
+    ref = LRMBeyondNyquist(**cv.best_params_).fit(u, y, F)
+    assert cv.frf_.shape == (2, 2, N // 2 + 1)
+    np.testing.assert_array_equal(cv.frf_, ref.frf_)
+    np.testing.assert_array_equal(cv.frf_std_, ref.frf_std_)
+    # the chosen setting has the lowest criterion among the identifiable ones
+    crit = cv.cv_results_["criterion"]
+    assert cv.best_criterion_ == crit[np.isfinite(crit)].min()
+    # a list of one record and the (1, n_u, N) array are the same data
+    listed = LRMBeyondNyquistCV(**SMALL_GRID).fit([u], [y], F)
+    np.testing.assert_array_equal(listed.cv_results_["criterion"], crit)
+    assert listed.best_params_ == cv.best_params_
+
+
+@pytest.mark.parametrize("criterion", ["gaic", "aicc"])
+def test_mimo_cv_rejects_a_polynomial_model_on_a_resonant_system(criterion):
+    """As the SISO test: on two experiments of a 2x2 system of 1 %-damped
+    resonances, R_e = 4 beats the polynomial and the criterion picks it,
+    and its true error over all four entries is the lower one."""
+    rng = np.random.default_rng(9)
+    b, a = resonant_system()
+    G = frf_of(b, a, N)
+    G_true = np.array([[G, 0.5 * G], [0.5 * G, G]])
+    records = [_mimo_record(rng, noise_std=0.002) for _ in range(2)]
+    u = np.stack([r[0] for r in records])
+    y = np.stack([r[1] for r in records])
+    grid = {"half_windows": (12,), "num_degrees": (2,), "den_degrees": (0, 4)}
+    cv = LRMBeyondNyquistCV(**grid, criterion=criterion).fit(u, y, F)
+    assert cv.best_params_["den_degree"] == 4
+    poly = LRMBeyondNyquist(half_window=12, num_degree=2, transient_degree=2,
+                            den_degree=0).fit(u, y, F)
+    err = np.median(np.abs(cv.frf_ - G_true))
+    assert err < 0.5 * np.median(np.abs(poly.frf_ - G_true))
+
+
+def test_mimo_cv_counts_inputs_in_identifiability():
+    """Two inputs need twice the system columns: a grid identifiable for one
+    input is refused for two with the count of inputs in the message."""
+    rng = np.random.default_rng(7)
+    u, y = _mimo_record(rng, n_samples=90)  # M = 30 slow samples
+    grid = {"half_windows": (6,), "num_degrees": (1,), "den_degrees": (2,)}
+    # 13 equations; one input: 2*3 + 2 + 2 = 10 params, two: 16
+    LRMBeyondNyquistCV(**grid).fit(u[0], y[0], F)
+    with pytest.raises(ValueError, match="n_u=2"):
+        LRMBeyondNyquistCV(**grid).fit(u, y, F)
+
+
+def test_cv_passes_std_method_on():
+    rng = np.random.default_rng(8)
+    u, y = _data(rng)
+    cv = LRMBeyondNyquistCV(**SMALL_GRID, std_method="eiv").fit(u, y, F)
+    assert cv.best_estimator_.std_method == "eiv"
+    ref = LRMBeyondNyquist(**cv.best_params_, std_method="eiv").fit(u, y, F)
+    np.testing.assert_array_equal(cv.frf_std_, ref.frf_std_)
+    lemma2 = LRMBeyondNyquistCV(**SMALL_GRID, std_method="lemma2").fit(u, y, F)
+    assert lemma2.best_params_ == cv.best_params_  # it does not enter the choice
+    assert not np.allclose(lemma2.frf_std_, cv.frf_std_)
+    with pytest.raises(ValueError, match="std_method"):
+        LRMBeyondNyquistCV(std_method="bogus").fit(u, y, F)

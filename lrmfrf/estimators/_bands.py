@@ -61,13 +61,15 @@ def region_values(per_bin: np.ndarray, bounds: np.ndarray, combine) -> np.ndarra
 
     ``combine(per_bin, well_posed)`` is the candidate's criterion on the
     windows marked well posed (the global one with all windows); windows of
-    other regions are masked out.
+    other regions are masked out. ``per_bin`` is ``(M//2+1,)``, or
+    ``(n_y, M//2+1)`` with one row per output (a region is the same slow bins
+    in every row).
     """
     out = np.empty(bounds.size - 1)
     finite = np.isfinite(per_bin)
     for r in range(out.size):
-        mask = np.zeros(per_bin.size, dtype=bool)
-        mask[bounds[r] : bounds[r + 1]] = True
+        mask = np.zeros(per_bin.shape, dtype=bool)
+        mask[..., bounds[r] : bounds[r + 1]] = True
         out[r] = combine(per_bin, finite & mask)
     return out
 

@@ -116,6 +116,7 @@ from ..local_models import (
 )
 from ..progress import progress
 from ..solvers import CHUNK_BYTES, solve_local_least_squares
+from ..uncertainty import DEFAULT_STD_METHOD, check_std_method
 from ..windows import LocalModelLayout, local_regressor
 from . import _bands
 from ._base import _BaseFRFEstimator
@@ -153,13 +154,15 @@ class LocalCriterion:
     ----------
     value : float
         The criterion; ``inf`` if no window is well posed.
-    per_bin : ndarray of shape (M//2+1,)
-        Per window: for ``"press"`` the squared centre LOO error summed over
-        experiments, for ``"gcv"``, ``"aicc"`` and ``"gaic"`` the residual
-        variance per equation; both divided by ``M`` (time-domain units, ``y_l^2``). NaN
-        where not well posed.
+    per_bin : ndarray of shape (M//2+1,) or (n_y, M//2+1)
+        Per window (and output row, for several outputs): for ``"press"``
+        the squared centre LOO error summed over experiments, for ``"gcv"``,
+        ``"aicc"`` and ``"gaic"`` the residual variance per equation; both
+        divided by ``M`` (time-domain units, ``y_l^2``). NaN where not well
+        posed.
     n_invalid : int
-        Windows (slow bins ``0..M//2``) whose local problem is not well posed.
+        Windows (slow bins ``0..M//2``, summed over output rows) whose local
+        problem is not well posed.
     """
 
     value: float
@@ -179,13 +182,17 @@ def local_model_criterion(
 
     Parameters
     ----------
-    U : ndarray of shape (P, N), complex
-        Unnormalised DFT of the fast inputs.
-    Y : ndarray of shape (P, M), complex
-        Unnormalised DFT of the slow outputs.
+    U : ndarray of shape (P, N) or (P, n_u N), complex
+        Unnormalised DFT of the fast inputs (inputs concatenated, as
+        :func:`lrmfrf.windows.local_regressor` takes them).
+    Y : ndarray of shape (P, M) or (P, n_y, M), complex
+        Unnormalised DFT of the slow outputs: one output channel, or ``n_y``
+        of them. Each output row is its own local problem per window (as
+        :class:`LRMBeyondNyquist` fits MIMO data); the criterion pools the
+        windows of all rows (the same ``L`` and ``p`` for every row).
     layout : LocalModelLayout
-        The candidate (window, degrees, ``P``). Needs ``layout.dof >= 1``
-        (``>= 2`` for AICc).
+        The candidate (window, degrees, ``P``, ``n_u``). Needs
+        ``layout.dof >= 1`` (``>= 2`` for AICc).
     criterion : {"aicc", "gcv", "press", "gaic"}, default="aicc"
         See the module notes. With ``s2`` the weighted mean over windows of the
         residual variance per equation (``rss / L``, divided by ``M``):
@@ -220,22 +227,34 @@ def local_model_criterion(
             f"equations and {layout.n_params} parameters. Increase half_window or "
             "lower the degrees."
         )
-    per_bin, well_posed, _ = _local_criteria(U, Y, layout, chunk_size=chunk_size)
-    values = per_bin["press" if criterion == "press" else "residual"]
+    Y = np.asarray(Y)
+    rows = [Y] if Y.ndim == 2 else [Y[:, o] for o in range(Y.shape[1])]
+    name = "press" if criterion == "press" else "residual"
+    values, well_posed = [], []
+    for Y_o in rows:
+        per_bin, ok, _ = _local_criteria(U, Y_o, layout, chunk_size=chunk_size)
+        values.append(per_bin[name])
+        well_posed.append(ok)
+    values = values[0] if Y.ndim == 2 else np.stack(values)
+    well_posed = well_posed[0] if Y.ndim == 2 else np.stack(well_posed)
     return LocalCriterion(
-        value=_combine(values, well_posed, layout, criterion, Y.shape[1]),
+        value=_combine(values, well_posed, layout, criterion, Y.shape[-1]),
         per_bin=values,
         n_invalid=int(np.count_nonzero(~well_posed)),
     )
 
 
 def _combine(per_bin, well_posed, layout, criterion, n_slow) -> float:
-    """Weighted mean over the well-posed windows, then the criterion's penalty."""
-    weights = np.full(per_bin.size, 2.0)
+    """Weighted mean over the well-posed windows, then the criterion's penalty.
+
+    ``per_bin`` and ``well_posed`` are ``(M//2+1,)``, or ``(n_y, M//2+1)``
+    for several output rows (all rows' windows pooled).
+    """
+    weights = np.full(per_bin.shape[-1], 2.0)
     weights[0] = 1.0
     if n_slow % 2 == 0:
         weights[-1] = 1.0  # k = M/2 is its own mirror
-    w = weights[well_posed]
+    w = np.broadcast_to(weights, per_bin.shape)[well_posed]
     if not w.size:
         return np.inf
     mean = float(np.sum(w * per_bin[well_posed]) / w.sum())
@@ -273,8 +292,9 @@ def _local_criteria(U, Y, layout, *, chunk_size=None):
         ``"press"``: squared centre LOO error summed over experiments over
         ``P M``; ``"residual"``: ``rss / (L M)``. NaN where not well posed.
     well_posed : ndarray of shape (M//2+1,), bool
-    system : ndarray of shape (M//2+1, F), complex
-        ``G(k+fM)`` of each window (as :func:`fit_local_models`).
+    system : ndarray of shape (M//2+1, n_u F), complex
+        ``G(k+fM)`` of each window (as :func:`fit_local_models`; band
+        ``b = i F + f`` is input ``i``).
     """
     P, M = Y.shape
     slow_bins = half_slow_bins(M)
@@ -284,7 +304,7 @@ def _local_criteria(U, Y, layout, *, chunk_size=None):
     centre_rows = np.arange(P) * layout.window + layout.half_window
     per_bin = {name: np.empty(slow_bins.size) for name in ("press", "residual")}
     well_posed = np.empty(slow_bins.size, dtype=bool)
-    system = np.empty((slow_bins.size, layout.F), dtype=complex)
+    system = np.empty((slow_bins.size, layout.n_bands), dtype=complex)
     for start in range(0, slow_bins.size, chunk_size):
         bins = slow_bins[start : start + chunk_size]
         chunk = slice(start, start + bins.size)
@@ -296,7 +316,7 @@ def _local_criteria(U, Y, layout, *, chunk_size=None):
             rank_columns=layout.n_system + layout.n_transient,
         )
         well_posed[chunk] = sol.well_posed
-        system[chunk] = layout.F * sol.theta[:, : layout.F]
+        system[chunk] = layout.F * sol.theta[:, : layout.n_bands]
         theta = np.where(sol.well_posed[:, None], sol.theta, 0.0)
         centre = b[:, centre_rows] - np.einsum(
             "bij,bj->bi", A[:, centre_rows], theta
@@ -452,12 +472,15 @@ class _LocalModelCV(_BaseFRFEstimator):
 
         Parameters
         ----------
-        u_h : array-like of shape (N,), (1, N) or (P, 1, N), or list of P records
-            Fast-rate input(s), real, one input channel (a 2-D array is one
-            record with channels first; several experiments go in a list or a
-            3-D array). MIMO data are not supported by the selection yet.
-        y_l : array-like of shape (M,), (1, M) or (P, 1, M), or list of P records
-            Slow-rate output(s), real, one output channel.
+        u_h : array-like of shape (N,), (n_u, N) or (P, n_u, N), or list
+            Fast-rate input(s), real, in the record convention of
+            :meth:`LRMBeyondNyquist.fit` (a 2-D array is one record with
+            channels first; several experiments go in a list or a 3-D array).
+        y_l : array-like of shape (M,), (n_y, M) or (P, n_y, M), or list
+            Slow-rate output(s) likewise. With several outputs each output row
+            is its own local problem per window (as the refitted estimator
+            fits it) and the criterion pools the windows of all rows: one
+            setting for the whole FRF matrix.
         F : int
             Downsampling factor, ``N = F M``.
         sample_time : float, default=1.0
@@ -479,22 +502,25 @@ class _LocalModelCV(_BaseFRFEstimator):
         params = self._checked_params()
         criterion = params["criterion"]
         records = check_records(u_h, y_l, F)
-        u, y = records.siso_stacks(type(self).__name__)
+        u, y = records.u, records.y  # (P, n_u, N), (P, n_y, M): validated copies
         F = records.F
         sample_time = check_sample_time(sample_time)
         candidates = self._candidates(params)
-        P, M = y.shape
+        P, n_u, N = u.shape
+        M = y.shape[-1]
         layouts, reasons = [], []
         for candidate in candidates:
             try:
                 degrees = check_local_degrees(
-                    **self._degrees_of(candidate), F=F, n_slow=M, n_experiments=P
+                    **self._degrees_of(candidate), F=F, n_slow=M, n_experiments=P,
+                    n_inputs=n_u,
                 )
             except ValueError as exc:
                 layouts.append(None)
                 reasons.append(str(exc))
                 continue
-            layout = LocalModelLayout(F=F, n_experiments=P, **degrees)
+            layout = LocalModelLayout(F=F, n_experiments=P, n_inputs=n_u,
+                                      **degrees)
             enough = layout.dof >= _MIN_DOF[criterion]
             layouts.append(layout if enough else None)
             reasons.append(
@@ -503,21 +529,21 @@ class _LocalModelCV(_BaseFRFEstimator):
             )
         if all(layout is None for layout in layouts):
             raise ValueError(
-                f"No candidate of the grid is identifiable for N={u.shape[1]}, "
-                f"F={F}, P={P} ({len(candidates)} candidates; e.g. "
+                f"No candidate of the grid is identifiable for N={N}, F={F}, "
+                f"P={P}, n_u={n_u} ({len(candidates)} candidates; e.g. "
                 f"{candidates[0]}: {reasons[0]}). Use smaller degrees or larger "
-                "half_windows (each needs P*(2n+1) > (R_g+1)F + P(R_t+1) + R_e "
-                "and 2n+1 <= M)."
+                "half_windows (each needs P*(2n+1) > (R_g+1) F n_u + P(R_t+1) + "
+                "R_e and 2n+1 <= M)."
             )
-        U = dft(u)
-        Y = dft(y)
+        U = dft(u).reshape(P, n_u * N)  # inputs concatenated
+        Y = dft(y)[:, 0] if y.shape[1] == 1 else dft(y)  # (P, M) or (P, n_y, M)
         todo = [i for i, layout in enumerate(layouts) if layout is not None]
         results = Parallel(n_jobs=params["n_jobs"])(
             delayed(local_model_criterion)(U, Y, layouts[i], criterion=criterion)
             for i in progress(todo, enabled=params["verbose"], desc="candidates")
         )
         value = np.full(len(candidates), np.inf)
-        n_invalid = np.full(len(candidates), half_slow_bins(M).size)
+        n_invalid = np.full(len(candidates), half_slow_bins(M).size * y.shape[1])
         for i, res in zip(todo, results, strict=True):
             value[i] = res.value
             n_invalid[i] = res.n_invalid
@@ -538,8 +564,7 @@ class _LocalModelCV(_BaseFRFEstimator):
         self.best_index_ = best
         self.best_params_ = dict(candidates[best])
         self.best_criterion_ = float(value[best])
-        estimator = clone(self._base_class(**candidates[best]))
-        estimator.fit(list(u), list(y), F, sample_time=sample_time)
+        estimator = self._refit(params, candidates[best], u, y, F, sample_time)
         self.best_estimator_ = estimator
         for name, attr in vars(estimator).items():
             if name.endswith("_") and not name.startswith("_"):
@@ -555,7 +580,7 @@ class _LocalModelCV(_BaseFRFEstimator):
     def _fit_per_band(self, params, u, y, F, sample_time, candidates, layouts,
                       per_bin, criterion) -> None:
         """Choose a candidate per region of slow bins and blend their FRFs."""
-        P, M = y.shape
+        M = y.shape[-1]
         n_half = M // 2 + 1
         bands = params["bands"]
         if bands is None:
@@ -570,14 +595,16 @@ class _LocalModelCV(_BaseFRFEstimator):
                 partial(_combine_mask, layout=layouts[i], criterion=criterion,
                         n_slow=M),
             )
-            invalid[i] = np.add.reduceat(~np.isfinite(pb), bounds[:-1])
+            invalid[i] = np.add.reduceat(
+                ~np.isfinite(pb), bounds[:-1], axis=-1
+            ).reshape(-1, R).sum(axis=0)  # summed over output rows
         chosen = [int(np.lexsort((values[:, r], invalid[:, r]))[0])
                   for r in range(R)]
         fitted = {self.best_index_: self.best_estimator_}
         for i in dict.fromkeys(chosen):
             if i not in fitted:
-                fitted[i] = clone(self._base_class(**candidates[i])).fit(
-                    list(u), list(y), F, sample_time=sample_time)
+                fitted[i] = self._refit(params, candidates[i], u, y, F,
+                                        sample_time)
         ramp = min(params["half_windows"])
         weights = _bands.region_weights(bounds, ramp)
         blended = _bands.blend([fitted[i] for i in chosen], weights,
@@ -590,6 +617,17 @@ class _LocalModelCV(_BaseFRFEstimator):
         self.band_index_ = np.array(chosen)
         self.band_criterion_ = values[chosen, np.arange(R)]
         self.band_estimators_ = [fitted[i] for i in chosen]
+
+    def _refit(self, params, candidate, u, y, F, sample_time):
+        """The base estimator with ``candidate`` (and the parameters this
+        class passes on, :meth:`_passed_on`), fitted on all records."""
+        estimator = clone(self._base_class(**candidate, **self._passed_on(params)))
+        # (P, n_u, N) and (P, n_y, M): P experiments, as the caller's records
+        return estimator.fit(u, y, F, sample_time=sample_time)
+
+    def _passed_on(self, params: dict) -> dict:
+        """Parameters of the refitted estimator set by this class (none)."""
+        return {}
 
     @property
     def best_score_(self) -> float:
@@ -686,6 +724,9 @@ class LRMBeyondNyquistCV(_LocalModelCV):
         as the largest window (``2 (M // 2 + 1)`` bins over ``2
         max(half_windows) + 1``, 1 to 8 regions; 6 for M = 400). Passing
         ``bands`` without ``per_band=True`` is an error.
+    std_method : str, default as :class:`LRMBeyondNyquist`
+        How the refitted estimator computes ``frf_std_``
+        (``LRMBeyondNyquist(std_method=...)``); it does not enter the choice.
 
     Attributes
     ----------
@@ -764,6 +805,7 @@ class LRMBeyondNyquistCV(_LocalModelCV):
         "verbose": check_bool,
         "per_band": check_bool,
         "bands": _check_bands,
+        "std_method": check_std_method,
     }
 
     def __init__(
@@ -778,6 +820,7 @@ class LRMBeyondNyquistCV(_LocalModelCV):
         verbose: bool = False,
         per_band: bool = False,
         bands=None,
+        std_method: str = DEFAULT_STD_METHOD,
     ):
         self.half_windows = half_windows
         self.num_degrees = num_degrees
@@ -788,6 +831,7 @@ class LRMBeyondNyquistCV(_LocalModelCV):
         self.verbose = verbose
         self.per_band = per_band
         self.bands = bands
+        self.std_method = std_method
 
     def _checked_params(self) -> dict:
         params = super()._checked_params()
@@ -806,6 +850,9 @@ class LRMBeyondNyquistCV(_LocalModelCV):
             "transient_degree": params["transient_degrees"],
             "den_degree": params["den_degrees"],
         }
+
+    def _passed_on(self, params: dict) -> dict:
+        return {"std_method": params["std_method"]}
 
     def _candidates(self, params: dict) -> list[dict]:
         candidates = super()._candidates(params)
