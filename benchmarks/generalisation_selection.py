@@ -21,6 +21,15 @@ variants explored for issue 15 (:func:`criterion_values`: ``loo`` full-window
 leave-one-out, ``*_g`` geometric means over windows, ``aicg_k<c>`` the GAIC
 family, ``dofg_k<c>``, ``bicg``, ``relstd`` the Lemma-2 relative std).
 
+``--mimo`` runs the same table on 2x2 systems instead: ``G[0:2, 0:2]`` of
+``random_stage(seed, mimo=True)`` (the four-corner plate, its own ``F``;
+``--wafer`` adds ``mimo_wafer_stage()`` at F = 3), two orthogonal multisine
+experiments (:func:`lrmfrf.signals.orthogonal_multisines`) of ``N = 400 F``
+samples, 30-45 dB on every output; each output row is scored as its own
+local problem and the criterion pools the rows, as ``LRMBeyondNyquistCV``
+does on MIMO data; the error is the median over all four entries and the
+valid bins (library criteria but PRESS).
+
 ``--per-band`` runs the per-band study instead: cluster stages
 (:func:`cluster_stage`: rigid body below 100 Hz and three modes aliasing onto
 about the same slow frequency), one record each at 40 dB, the RMS relative
@@ -30,6 +39,7 @@ in the rigid-body region and around the cluster.
 
 Run:  python benchmarks/generalisation_selection.py --seeds 1000-1019
       python benchmarks/generalisation_selection.py --seeds 2000-2019 --wafer
+      python benchmarks/generalisation_selection.py --mimo --seeds 3000-3019 --wafer
       python benchmarks/generalisation_selection.py --per-band --seeds 1-8
       [--n-jobs 2] [--criteria gaic aicc aicg_k3 ...] [--csv out.csv]
 (about 5 s of CPU per record; 15-20 min per 20 stages on a loaded 2-core box)
@@ -51,8 +61,8 @@ from lrmfrf.estimators.selection import (
     _local_criteria,
 )
 from lrmfrf.local_models import one_sided_fast_grid
-from lrmfrf.plants import random_stage, wafer_stage
-from lrmfrf.signals import multisine
+from lrmfrf.plants import mimo_wafer_stage, random_stage, wafer_stage
+from lrmfrf.signals import multisine, orthogonal_multisines
 from lrmfrf.simulate import simulate, true_frf
 from lrmfrf.windows import LocalModelLayout
 
@@ -88,6 +98,66 @@ def stage_systems(seed) -> list[tuple[str, object, int]]:
         stage, draw = random_stage(int(seed), loop=loop)
         out.append((f"{seed}/{loop}/{name}", getattr(stage, name),
                     draw.downsampling_factor))
+    return out
+
+
+def mimo_stage_systems(seed) -> list[tuple[str, object, int]]:
+    """``(label, 2x2 system, F)`` of one MIMO random stage (or of
+    ``mimo_wafer_stage()`` at F = 3 for ``seed="wafer"``)."""
+    if seed == "wafer":
+        return [("mimo-wafer", mimo_wafer_stage(downsampling_factor=3).G[0:2, 0:2],
+                 3)]
+    stage, draw = random_stage(int(seed), mimo=True)
+    return [(f"{seed}/mimo", stage.G[0:2, 0:2], draw.downsampling_factor)]
+
+
+def mimo_record_ingredients(system, F: int, seed: int, grid=None) -> dict:
+    """As :func:`record_ingredients` for a 2x2 system and two orthogonal
+    multisine experiments; per-window arrays are ``(n_y, M//2+1)``."""
+    rng = np.random.default_rng(seed)
+    N = SLOW_SAMPLES * F
+    snr = float(rng.uniform(*SNR_RANGE))
+    u = orthogonal_multisines(2, N, rng=rng)  # (P, n_u, N)
+    y = np.stack([simulate(system, u[p], F, snr_db=snr, rng=rng).y_l
+                  for p in range(2)])  # (P, n_y, M)
+    G = true_frf(system, N)  # (n_y, n_u, K)
+    U = np.fft.fft(u, axis=-1).reshape(2, 2 * N)
+    Y = np.fft.fft(y, axis=-1)
+    grid = mimo_grid(F) if grid is None else grid
+    usable = np.isfinite(G) & (np.abs(G) > 0)
+    usable[..., 0] = False
+    errors = np.empty(len(grid))
+    per_window, layouts = [], []
+    for i, c in enumerate(grid):
+        layout = LocalModelLayout(F=F, n_experiments=2, n_inputs=2, **c)
+        residual, ok = [], []
+        rel = np.full(G.shape, np.nan)
+        for o in range(2):  # as LRMBeyondNyquistCV: no leverage without PRESS
+            per_bin, ok_o, band = _local_criteria(U, Y[:, o], layout,
+                                                  leverage=False)
+            residual.append(per_bin["residual"])
+            ok.append(ok_o)
+            for j in range(2):
+                frf = one_sided_fast_grid(band[:, j * F:(j + 1) * F], N, F,
+                                          conj=True)
+                rel[o, j] = np.abs(frf - G[o, j]) / np.abs(
+                    np.where(usable[o, j], G[o, j], 1.0))
+        rel[~usable] = np.nan
+        errors[i] = np.nanmedian(rel) if np.isfinite(rel).any() else np.inf
+        per_window.append({"residual": np.stack(residual), "ok": np.stack(ok)})
+        layouts.append(layout)
+    return {"errors": errors, "per_window": per_window, "layouts": layouts,
+            "snr_db": snr, "N": N, "M": N // F, "F": F, "grid": grid}
+
+
+def mimo_grid(F: int, M: int = SLOW_SAMPLES) -> list[dict]:
+    """The default candidates feasible for two inputs and two experiments."""
+    est = LRMBeyondNyquistCV()
+    out = []
+    for c in est._candidates(est._checked_params()):
+        layout = LocalModelLayout(F=F, n_experiments=2, n_inputs=2, **c)
+        if layout.dof >= 2 and layout.window <= M:
+            out.append(c)
     return out
 
 
@@ -228,7 +298,7 @@ def pick(rec: dict, name: str) -> int:
 
 
 def selection_table(seeds, *, criteria=CRITERIA, n_jobs: int = 1,
-                    records=None) -> dict:
+                    records=None, mimo: bool = False) -> dict:
     """Pick / oracle ratios of each criterion over the records of ``seeds``.
 
     Parameters
@@ -241,6 +311,8 @@ def selection_table(seeds, *, criteria=CRITERIA, n_jobs: int = 1,
         Records simulated and fitted in parallel.
     records : list of dict, optional
         Precomputed :func:`record_ingredients` (with ``label``) to reuse.
+    mimo : bool
+        2x2 systems (:func:`mimo_stage_systems`, :func:`mimo_record_ingredients`).
 
     Returns
     -------
@@ -250,11 +322,13 @@ def selection_table(seeds, *, criteria=CRITERIA, n_jobs: int = 1,
         mean and worst ratio), ``fixed`` (the best single setting).
     """
     if records is None:
+        systems = mimo_stage_systems if mimo else stage_systems
+        ingredients = mimo_record_ingredients if mimo else record_ingredients
         jobs = [(label, system, F, 7919 * k + 13)
                 for k, seed in enumerate(seeds)
-                for label, system, F in stage_systems(seed)]
+                for label, system, F in systems(seed)]
         out = Parallel(n_jobs=n_jobs)(
-            delayed(record_ingredients)(system, F, rec_seed)
+            delayed(ingredients)(system, F, rec_seed)
             for _, system, F, rec_seed in jobs
         )
         records = [{**r, "label": label} for (label, *_), r in zip(jobs, out,
@@ -315,6 +389,8 @@ def main(argv=None) -> int:
     parser.add_argument("--csv", help="write one row per record here")
     parser.add_argument("--per-band", action="store_true",
                         help="run the per-band study on cluster stages instead")
+    parser.add_argument("--mimo", action="store_true",
+                        help="2x2 systems of MIMO random stages (library criteria)")
     parser.add_argument("--bands", type=int, default=None,
                         help="regions of the per-band study (default: automatic)")
     args = parser.parse_args(argv)
@@ -324,9 +400,16 @@ def main(argv=None) -> int:
         print_per_band(rows)
         return 0
     seeds = _parse_seeds(args.seeds) + (["wafer"] if args.wafer else [])
-    table = selection_table(seeds, criteria=args.criteria, n_jobs=args.n_jobs)
+    if args.mimo:
+        if "--criteria" not in (argv if argv is not None else sys.argv):
+            args.criteria = ["gaic", "aicc", "gcv"]
+        if set(args.criteria) - {"gaic", "aicc", "gcv"}:
+            parser.error("--mimo takes the criteria gaic, aicc and gcv")
+    table = selection_table(seeds, criteria=args.criteria, n_jobs=args.n_jobs,
+                            mimo=args.mimo)
     rows = table["rows"]
-    print(f"{len(rows)} records ({args.seeds}{' + wafer' if args.wafer else ''}); "
+    kind = "2x2 records" if args.mimo else "records"
+    print(f"{len(rows)} {kind} ({args.seeds}{' + wafer' if args.wafer else ''}); "
           f"M = {SLOW_SAMPLES}, SNR {SNR_RANGE[0]:g}-{SNR_RANGE[1]:g} dB; "
           "ratio = pick error / oracle error (median rel. error, valid bins)")
     print(f"{'criterion':14s}{'mean':>8s}{'worst':>8s}")
