@@ -144,3 +144,8 @@ def test_per_band_on_a_mimo_record_takes_one_setting_per_region():
     fit = four.band_estimators_[1]
     np.testing.assert_allclose(four.frf_[..., centre], fit.frf_[..., centre],
                                rtol=1e-12)
+    # the blended covariance keeps frf_std_ == sqrt(diag(frf_cov_)), ramps too
+    diag = np.sqrt(np.real(np.diagonal(four.frf_cov_, axis1=1, axis2=2)))
+    diag = np.moveaxis(diag, -1, 1)  # (n_y, n_u, K)
+    ok = four.valid_
+    np.testing.assert_allclose(diag[ok], four.frf_std_[ok], rtol=1e-12)

@@ -105,7 +105,10 @@ def blend(estimators, weights: np.ndarray, n_samples: int, F: int) -> dict:
 
     ``std`` is blended like the FRF (``w_a s_a + w_b s_b``: the two estimates
     come from the same data and are treated as fully correlated, an upper
-    bound). A fast bin is valid when every fit with weight there is.
+    bound). The covariance within an output row is the blend ``sum_a w_a
+    C_a`` rescaled to that std (its correlations kept), so ``frf_std_ ==
+    sqrt(diag(frf_cov_))`` holds in the ramps too. A fast bin is valid when
+    every fit with weight there is.
     """
     fast_w = np.stack([to_fast_grid(w, n_samples, F) for w in weights])  # (R, K)
     frf = np.zeros_like(estimators[0].frf_)
@@ -122,5 +125,11 @@ def blend(estimators, weights: np.ndarray, n_samples: int, F: int) -> dict:
         noise = noise + np.where(w_slow > 0, w_slow * est.noise_variance_, 0.0)
     frf = np.where(valid, frf, np.nan)
     std = np.where(valid, std, np.nan)
+    # (n_y, n_u, n_u, K): scale entry (i, j) by std_i std_j / sqrt(C_ii C_jj)
+    std_rows = std.reshape(cov.shape[0], cov.shape[1], -1)
+    diag = np.real(np.diagonal(cov, axis1=1, axis2=2))  # (n_y, K, n_u)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = std_rows / np.sqrt(np.moveaxis(diag, -1, 1))  # (n_y, n_u, K)
+    cov = cov * scale[:, :, None, :] * scale[:, None, :, :]
     return {"frf_": frf, "frf_std_": std, "frf_cov_": cov, "valid_": valid,
             "noise_variance_": noise}

@@ -769,10 +769,10 @@ class LRMBeyondNyquistCV(_LocalModelCV):
     frequencies_, frf_, frf_std_, valid_, noise_variance_, transient_, ...
         Those of ``best_estimator_`` (see :class:`LRMBeyondNyquist`). With
         ``per_band=True``, ``frf_``, ``frf_std_``, ``frf_cov_``, ``valid_``
-        and ``noise_variance_`` are the regions' blended values (the std and
-        covariance blended like the FRF, i.e. as if the two fits were fully
-        correlated: an upper bound; a bin is valid where every fit with
-        weight there is), and ``predict``/``to_frd`` use them; the other
+        and ``noise_variance_`` are the regions' blended values (the std
+        blended like the FRF, i.e. as if the two fits were fully correlated:
+        an upper bound; the covariance blended and rescaled to that std; a
+        bin is valid where every fit with weight there is), and ``predict``/``to_frd`` use them; the other
         attributes (``layout_``, ``local_fit_``, ``dof_``, ...) stay those of
         the global ``best_estimator_``.
     band_params_ : list of dict
