@@ -403,10 +403,10 @@ def test_qr_fallback_in_bounded_batches(monkeypatch, backend):
 def test_compiled_kernel_threads_do_not_change_the_result(noisy):
     """Each window is computed by the same code whatever thread runs it."""
     pytest.importorskip("numba")
-    from lrmfrf.solvers import REFINEMENT_TOL, _compiled_tables
+    from lrmfrf.solvers import REFINEMENT_TOL, _kernel_tables
 
     U, Y, layout = noisy
-    weights, col_base, tables = _compiled_tables(layout)
+    weights, col_base, tables, _ = _kernel_tables(layout)
     bins = np.arange(401)
     kw = {"fallback_tol": 1e-6, "refine_tol": REFINEMENT_TOL, "refine_steps": 1,
           "tables": tables}
