@@ -257,7 +257,7 @@ def _solve_range_py(
     """Lane groups ``first_group..stop_group-1`` (one thread's share)."""
     P = U.shape[0]
     L, p = weights.shape
-    s = _scratch(F, P, L, p, n_moments, n_tail)
+    s = _scratch(F, P, L, p, n_moments, n_centre, n_tail)
     for group in range(first_group, stop_group):
         _lane_group(
             U, Y, bins, group * LANES, weights, col_base,
@@ -268,7 +268,7 @@ def _solve_range_py(
         )
 
 
-def _scratch_py(F, P, L, p, n_moments, n_tail):
+def _scratch_py(F, P, L, p, n_moments, n_centre, n_tail):
     """Work arrays of one lane group, reused by all groups of a thread
     (~1.7 MB at the paper's degrees); unpacked in :func:`_lane_group`."""
     n_base = F + P + 1
@@ -293,6 +293,8 @@ def _scratch_py(F, P, L, p, n_moments, n_tail):
         np.empty(LANES, np.int64),
         np.empty((n_tail, n_tail, LANES), f64),
         np.empty((n_tail, n_tail, LANES), f64),
+        np.empty((n_centre, n_centre, LANES), f64),
+        np.empty((n_centre, n_centre, LANES), f64),
     )
 
 
@@ -313,7 +315,7 @@ def _lane_group(
     block are the Schur complement of this row (steps 5-10)."""
     (sr, si, Sr, Si, Er, Ei, Or, Oi, mr, mi, Hr, Hi, gr, gi, xr, xi, dr, di,
      scale2, polyr, polyi, resr, resi, ok_shared, ok, change_num, change_den, k,
-     tr, ti) = s
+     tr, ti, cr, ci) = s
     L, p = weights.shape
     n = L // 2
     B = bins.shape[0]
@@ -358,11 +360,12 @@ def _lane_group(
         # 8. (L L^H)^-1 at the centre columns (the n_centre columns before the
         # trailing ones) from the inverse of the tail of L
         _tail_inverse(Hr, Hi, tr.shape[0], p, tr, ti)
+        _tail_cov(tr, ti, n_centre, cr, ci)
         # 9. outputs of the real lanes (parameters mapped by ``to_layout``)
         _to_layout(xr, xi, to_layout, dr, di)
         _write_lanes(
-            first, B, dr, di, resr, resi, change_num, change_den, ok, tr, ti,
-            refine_tol, refine_steps, n_centre, theta[o], rss[o], cvar[o], fast[o],
+            first, B, dr, di, resr, resi, change_num, change_den, ok, cr, ci,
+            refine_tol, refine_steps, theta[o], rss[o], cvar[o], fast[o],
         )
 
 
@@ -400,12 +403,14 @@ def _solve_refined_py(
 
 
 def _write_lanes_py(
-    first, B, dr, di, resr, resi, change_num, change_den, ok, tr, ti,
-    refine_tol, refine_steps, n_centre, theta, rss, cvar, fast,
+    first, B, dr, di, resr, resi, change_num, change_den, ok, cr, ci,
+    refine_tol, refine_steps, theta, rss, cvar, fast,
 ):
-    """Rows ``first..`` of one output row's results from the real lanes."""
+    """Rows ``first..`` of one output row's results from the real lanes
+    (centre covariance ``cr/ci`` from :func:`_tail_cov`)."""
     p = dr.shape[0]
     L = resr.shape[1]
+    n_centre = cr.shape[0]
     for w in range(LANES):
         row = first + w
         if row >= B:
@@ -422,7 +427,10 @@ def _write_lanes_py(
                 theta[row, j, 0] = dr[j, w]
                 theta[row, j, 1] = di[j, w]
             rss[row] = total
-            _write_tail_cov(tr, ti, w, cvar, row)
+            for c in range(n_centre):
+                for d in range(n_centre):
+                    cvar[row, c, d, 0] = cr[c, d, w]
+                    cvar[row, c, d, 1] = ci[c, d, w]
             fast[row] = refined
         else:
             for i in range(p):
@@ -454,14 +462,17 @@ def _gather_inputs_py(U, M, k, F, n, sr, si):
     N = U.shape[2] // 2
     fold = N // M
     L = 2 * n + 1
-    for q in range(P):
-        for r in range(L):
-            for w in range(LANES):
-                j = k[w] + r - n
-                for f in range(F):
-                    idx = 2 * ((j + (f % fold) * M) % N)
-                    sr[f, q, r, w] = U[q, f // fold, idx]
-                    si[f, q, r, w] = U[q, f // fold, idx + 1]
+    for f in range(F):
+        i = f // fold
+        shift = (f % fold) * M - n
+        for q in range(P):
+            for r in range(L):
+                for w in range(LANES):
+                    j = k[w] + r + shift
+                    if j < 0 or j >= N:
+                        j %= N
+                    sr[f, q, r, w] = U[q, i, 2 * j]
+                    si[f, q, r, w] = U[q, i, 2 * j + 1]
 
 
 def _gather_output_py(Y, k, F, n, sr, si):
@@ -682,6 +693,22 @@ def _write_tail_cov_py(tr, ti, w, cvar, row):
             cvar[row, c, d, 1] = ai
 
 
+def _tail_cov_py(tr, ti, n_centre, cr, ci):
+    """``c = T^H T`` at the leading ``n_centre`` columns of the tail (see
+    :func:`_tail_inverse`) for every lane; the sums of
+    :func:`_write_tail_cov`, in the same order."""
+    n_tail = tr.shape[0]
+    for c in range(n_centre):
+        for d in range(n_centre):
+            for w in range(LANES):
+                cr[c, d, w] = 0.0
+                ci[c, d, w] = 0.0
+            for i in range(max(c, d), n_tail):
+                for w in range(LANES):
+                    cr[c, d, w] += tr[i, c, w] * tr[i, d, w] + ti[i, c, w] * ti[i, d, w]
+                    ci[c, d, w] += tr[i, c, w] * ti[i, d, w] - ti[i, c, w] * tr[i, d, w]
+
+
 def _to_layout_py(xr, xi, to_layout, dr, di):
     """``d = x @ to_layout`` (real map) for every lane."""
     p = xr.shape[0]
@@ -828,6 +855,7 @@ if AVAILABLE:  # pragma: no branch
     _cholesky = njit(**_opts)(_cholesky_py)
     _tail_inverse = njit(**_opts)(_tail_inverse_py)
     _write_tail_cov = njit(**_opts)(_write_tail_cov_py)
+    _tail_cov = njit(**_opts)(_tail_cov_py)
     _to_layout = njit(**_opts)(_to_layout_py)
     _chol_solve = njit(**_opts)(_chol_solve_py)
     _residual = njit(**_opts)(_residual_py)
