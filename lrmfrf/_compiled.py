@@ -61,7 +61,7 @@ __all__ = ["AVAILABLE", "LANES", "moment_tables", "solve_windows"]
 #: window (paper degrees, one thread) with 48, 64, 96 and 128 lanes.
 LANES = 96
 
-#: Lane groups a thread takes at a time from the shared queue.
+#: Lane groups a thread takes at a time from the shared queue (at most).
 _GROUPS_PER_TASK = 8
 
 #: Pair kinds of the moment tables.
@@ -982,11 +982,15 @@ def solve_windows(
         float(refine_tol), int(refine_steps), theta, rss, centre_cov, fast,
     )
     n_groups = (B + LANES - 1) // LANES
+    threads = n_threads or numba.config.NUMBA_NUM_THREADS
+    # at least 4 tasks per thread when the groups allow: the last ones then
+    # balance the threads (with 8 groups a task, 18 groups went 10 and 8)
+    per_task = max(1, min(_GROUPS_PER_TASK, n_groups // (4 * threads)))
     tasks = [
-        (start, min(n_groups, start + _GROUPS_PER_TASK))
-        for start in range(0, n_groups, _GROUPS_PER_TASK)
+        (start, min(n_groups, start + per_task))
+        for start in range(0, n_groups, per_task)
     ]
-    threads = min(n_threads or numba.config.NUMBA_NUM_THREADS, len(tasks))
+    threads = min(threads, len(tasks))
     if threads <= 1:
         _solve_range(*args, 0, n_groups)
     else:  # the kernel releases the GIL: threads share the lane groups
