@@ -1,6 +1,6 @@
 """Compiled kernel of the fast closed form (optional, needs numba).
 
-:func:`solve_windows` does, for every window, what
+:func:`solve_windows` does, for every window and output row, what
 :func:`lrmfrf.solvers.solve_local_normal_equations` does with array
 operations: gather the window data from the DFTs, build the Gram matrix
 ``A^H A`` and ``A^H b`` from polynomial moments of the products of the window
@@ -29,7 +29,13 @@ Structure used (all exact up to round-off):
 - the window is symmetric and the ``q_d`` and ``w_i`` are even or odd in
   ``r``: a moment is a sum over ``r >= 0`` of ``S(r) +- S(-r)`` (half the
   work), and half of the expansion coefficients are exactly zero and skipped;
-- the transient-transient block is the same in every window (a constant).
+- the transient-transient block is the same in every window (a constant);
+- the columns of the inputs and transients do not depend on the output: with
+  the denominator columns (``-Y``) last, their Gram block, moments and
+  Cholesky rows are built once per window for all output rows, and each row
+  adds only its own trailing rows of the factor (the Schur complement of its
+  denominator columns). The centre block of ``(A^H A)^-1`` is then read from
+  the inverse of the factor's tail from the centre columns on.
 
 Compiled with ``cache=True``; the only fast-math flag is ``contract`` (fused
 multiply-add, which rounds once instead of twice), so results equal the numpy
