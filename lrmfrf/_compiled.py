@@ -1,6 +1,6 @@
 """Compiled kernel of the fast closed form (optional, needs numba).
 
-:func:`solve_windows` does, for every window, what
+:func:`solve_windows` does, for every window and output row, what
 :func:`lrmfrf.solvers.solve_local_normal_equations` does with array
 operations: gather the window data from the DFTs, build the Gram matrix
 ``A^H A`` and ``A^H b`` from polynomial moments of the products of the window
@@ -29,7 +29,13 @@ Structure used (all exact up to round-off):
 - the window is symmetric and the ``q_d`` and ``w_i`` are even or odd in
   ``r``: a moment is a sum over ``r >= 0`` of ``S(r) +- S(-r)`` (half the
   work), and half of the expansion coefficients are exactly zero and skipped;
-- the transient-transient block is the same in every window (a constant).
+- the transient-transient block is the same in every window (a constant);
+- the columns of the inputs and transients do not depend on the output: with
+  the denominator columns (``-Y``) last, their Gram block, moments and
+  Cholesky rows are built once per window for all output rows, and each row
+  adds only its own trailing rows of the factor (the Schur complement of its
+  denominator columns). The centre block of ``(A^H A)^-1`` is then read from
+  the inverse of the factor's tail from the centre columns on.
 
 Compiled with ``cache=True``; the only fast-math flag is ``contract`` (fused
 multiply-add, which rounds once instead of twice), so results equal the numpy
@@ -61,7 +67,7 @@ __all__ = ["AVAILABLE", "LANES", "moment_tables", "solve_windows"]
 #: window (paper degrees, one thread) with 48, 64, 96 and 128 lanes.
 LANES = 96
 
-#: Lane groups a thread takes at a time from the shared queue.
+#: Lane groups a thread takes at a time from the shared queue (at most).
 _GROUPS_PER_TASK = 8
 
 #: Pair kinds of the moment tables.
@@ -248,8 +254,8 @@ def _degree(x, values):
 
 
 def _solve_range_py(
-    U, Y, bins, weights, col_base, data_index, F, n_centre,
-    q_basis, pair_kind, pair_a, pair_b, pair_nd, pair_off,
+    U, Y, bins, weights, col_base, data_index, F, n_centre, n_tail, n_shared,
+    n_shared_pairs, q_basis, pair_kind, pair_a, pair_b, pair_nd, pair_off,
     ent_ptr, ent_mom, ent_coef, ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef,
     n_moments, to_layout, fallback_tol, refine_tol, refine_steps, theta, rss, cvar,
     fast, first_group, stop_group,
@@ -257,18 +263,18 @@ def _solve_range_py(
     """Lane groups ``first_group..stop_group-1`` (one thread's share)."""
     P = U.shape[0]
     L, p = weights.shape
-    s = _scratch(F, P, L, p, n_moments, n_centre)
+    s = _scratch(F, P, L, p, n_moments, n_centre, n_tail)
     for group in range(first_group, stop_group):
         _lane_group(
             U, Y, bins, group * LANES, weights, col_base,
-            data_index, F, n_centre, q_basis, pair_kind, pair_a, pair_b,
-            pair_nd, pair_off, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const,
-            rhs_ptr, rhs_mom, rhs_coef, to_layout, fallback_tol, refine_tol,
-            refine_steps, theta, rss, cvar, fast, s,
+            data_index, F, n_centre, n_shared, n_shared_pairs, q_basis,
+            pair_kind, pair_a, pair_b, pair_nd, pair_off, ent_ptr, ent_mom,
+            ent_coef, ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef, to_layout,
+            fallback_tol, refine_tol, refine_steps, theta, rss, cvar, fast, s,
         )
 
 
-def _scratch_py(F, P, L, p, n_moments, n_centre):
+def _scratch_py(F, P, L, p, n_moments, n_centre, n_tail):
     """Work arrays of one lane group, reused by all groups of a thread
     (~1.7 MB at the paper's degrees); unpacked in :func:`_lane_group`."""
     n_base = F + P + 1
@@ -288,41 +294,95 @@ def _scratch_py(F, P, L, p, n_moments, n_centre):
         np.empty((p, LANES), f64),
         np.empty((n_base, L, LANES), f64), np.empty((n_base, L, LANES), f64),
         np.empty((P, L, LANES), f64), np.empty((P, L, LANES), f64),
-        np.empty(LANES, np.bool_), np.empty(LANES, f64), np.empty(LANES, f64),
+        np.empty(LANES, np.bool_), np.empty(LANES, np.bool_),
+        np.empty(LANES, f64), np.empty(LANES, f64),
         np.empty(LANES, np.int64),
+        np.empty((n_tail, n_tail, LANES), f64),
+        np.empty((n_tail, n_tail, LANES), f64),
         np.empty((n_centre, n_centre, LANES), f64),
         np.empty((n_centre, n_centre, LANES), f64),
     )
 
 
 def _lane_group(
-    U, Y, bins, first, weights, col_base, data_index, F,
-    n_centre, q_basis, pair_kind, pair_a, pair_b, pair_nd, pair_off,
+    U, Y, bins, first, weights, col_base, data_index, F, n_centre, n_shared,
+    n_shared_pairs, q_basis, pair_kind, pair_a, pair_b, pair_nd, pair_off,
     ent_ptr, ent_mom, ent_coef, ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef,
     to_layout, fallback_tol, refine_tol, refine_steps, theta, rss, cvar, fast, s,
 ):
-    """Solve the windows ``bins[first:first+LANES]`` (the last group repeats
-    its final window in the unused lanes) and write rows ``first..`` of
-    ``theta``, ``rss``, ``cvar`` and ``fast``; steps 1-7 below."""
+    """Solve the windows ``bins[first:first+LANES]`` of every output row (the
+    last group repeats its final window in the unused lanes) and write rows
+    ``first..`` of ``theta[o]``, ``rss[o]``, ``cvar[o]`` and ``fast[o]``.
+
+    The leading ``n_shared`` columns (inputs and transients) do not depend on
+    the output: their moments, Gram block and Cholesky factor are computed
+    once (steps 1-4), and every output row only adds its trailing columns
+    (``-Y`` times the denominator basis): the rows of ``L`` below the shared
+    block are the Schur complement of this row (steps 5-10)."""
     (sr, si, Sr, Si, Er, Ei, Or, Oi, mr, mi, Hr, Hi, gr, gi, xr, xi, dr, di,
-     scale2, polyr, polyi, resr, resi, ok, change_num, change_den, k, tr, ti) = s
+     scale2, polyr, polyi, resr, resi, ok_shared, ok, change_num, change_den, k,
+     tr, ti, cr, ci) = s
     L, p = weights.shape
     n = L // 2
     B = bins.shape[0]
+    n_pairs = pair_kind.shape[0]
+    shared_entries = n_shared * (n_shared + 1) // 2
+    tol2 = fallback_tol * fallback_tol
     for w in range(LANES):
         k[w] = bins[min(first + w, B - 1)]
-    # 1. window data
-    _gather(U, Y, k, F, n, sr, si)
-    # 2. moments of the pair series, by parity
-    for t in range(pair_kind.shape[0]):
+    # 1. window data of the inputs
+    _gather_inputs(U, Y.shape[2] // 2, k, F, n, sr, si)
+    # 2. moments of the pair series without -Y, by parity
+    for t in range(n_shared_pairs):
         _pair_series(sr, si, pair_kind[t], pair_a[t], pair_b[t], Sr, Si)
         _moments(Sr, Si, q_basis, pair_off[t], pair_nd[t], Er, Ei, Or, Oi, mr, mi)
-    # 3. Gram (packed lower, internal order) and A^H b from the moments
-    _gram(mr, mi, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const, rhs_ptr,
-          rhs_mom, rhs_coef, Hr, Hi, gr, gi)
-    # 4. Cholesky with the equilibrated pivot check (van der Sluis)
-    _cholesky(Hr, Hi, scale2, ok, fallback_tol * fallback_tol, p)
-    # 5. solve, then refine with the explicit residual
+    # 3. the shared Gram block (packed lower, internal order)
+    _gram_entries(mr, mi, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const,
+                  0, shared_entries, Hr, Hi)
+    # 4. its Cholesky factor, with the equilibrated pivot check (van der Sluis)
+    for w in range(LANES):
+        ok_shared[w] = True
+    _cholesky_rows(Hr, Hi, scale2, ok_shared, tol2, 0, n_shared)
+    for o in range(Y.shape[0]):
+        # 5. window data of this output row, its moments, Gram rows and A^H b
+        _gather_output(Y[o], k, F, n, sr, si)
+        for t in range(n_shared_pairs, n_pairs):
+            _pair_series(sr, si, pair_kind[t], pair_a[t], pair_b[t], Sr, Si)
+            _moments(Sr, Si, q_basis, pair_off[t], pair_nd[t], Er, Ei, Or, Oi,
+                     mr, mi)
+        _gram_entries(mr, mi, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const,
+                      shared_entries, ent_const.shape[0], Hr, Hi)
+        _rhs(mr, mi, rhs_ptr, rhs_mom, rhs_coef, gr, gi)
+        # 6. the trailing rows of the Cholesky factor
+        for w in range(LANES):
+            ok[w] = ok_shared[w]
+        _cholesky_rows(Hr, Hi, scale2, ok, tol2, n_shared, p)
+        # 7. solve, then refine with the explicit residual
+        _solve_refined(
+            sr, si, Hr, Hi, gr, gi, xr, xi, dr, di, scale2, weights, col_base,
+            data_index, F, polyr, polyi, resr, resi, change_num, change_den,
+            refine_steps, p,
+        )
+        # 8. (L L^H)^-1 at the centre columns (the n_centre columns before the
+        # trailing ones) from the inverse of the tail of L
+        _tail_inverse(Hr, Hi, tr.shape[0], p, tr, ti)
+        _tail_cov(tr, ti, n_centre, cr, ci)
+        # 9. outputs of the real lanes (parameters mapped by ``to_layout``)
+        _to_layout(xr, xi, to_layout, dr, di)
+        _write_lanes(
+            first, B, dr, di, resr, resi, change_num, change_den, ok, cr, ci,
+            refine_tol, refine_steps, theta[o], rss[o], cvar[o], fast[o],
+        )
+
+
+def _solve_refined_py(
+    sr, si, Hr, Hi, gr, gi, xr, xi, dr, di, scale2, weights, col_base,
+    data_index, F, polyr, polyi, resr, resi, change_num, change_den,
+    refine_steps, p,
+):
+    """``x`` from the factor, ``refine_steps`` refinement steps with the
+    explicit residual (left in ``resr/resi``) and the scaled size of the last
+    correction (``change_num / change_den``)."""
     _chol_solve(Hr, Hi, gr, gi, xr, xi, p)
     for w in range(LANES):
         change_num[w] = 0.0
@@ -346,10 +406,17 @@ def _lane_group(
                 change_den[w] += scale2[i, w] * (xr[i, w] ** 2 + xi[i, w] ** 2)
                 xr[i, w] += dr[i, w]
                 xi[i, w] += di[i, w]
-    # 6. diag of (L L^H)^-1 at the trailing columns: inverse of the tail of L
-    _tail_inverse(Hr, Hi, n_centre, p, tr, ti)
-    # 7. outputs of the real lanes (parameters mapped by ``to_layout``)
-    _to_layout(xr, xi, to_layout, dr, di)
+
+
+def _write_lanes_py(
+    first, B, dr, di, resr, resi, change_num, change_den, ok, cr, ci,
+    refine_tol, refine_steps, theta, rss, cvar, fast,
+):
+    """Rows ``first..`` of one output row's results from the real lanes
+    (centre covariance ``cr/ci`` from :func:`_tail_cov`)."""
+    p = dr.shape[0]
+    L = resr.shape[1]
+    n_centre = cr.shape[0]
     for w in range(LANES):
         row = first + w
         if row >= B:
@@ -366,7 +433,10 @@ def _lane_group(
                 theta[row, j, 0] = dr[j, w]
                 theta[row, j, 1] = di[j, w]
             rss[row] = total
-            _write_tail_cov(tr, ti, w, cvar, row)
+            for c in range(n_centre):
+                for d in range(n_centre):
+                    cvar[row, c, d, 0] = cr[c, d, w]
+                    cvar[row, c, d, 1] = ci[c, d, w]
             fast[row] = refined
         else:
             for i in range(p):
@@ -388,20 +458,38 @@ def _gather_py(U, Y, k, F, n, sr, si):
     input bands ``f < F`` and ``-Y`` (``f = F``); band ``f`` is input ``f //
     fold`` at fast bin ``j + (f % fold) M`` (:func:`lrmfrf.windows.
     band_indices`), ``fold = N // M`` the downsampling factor."""
+    _gather_inputs(U, Y.shape[1] // 2, k, F, n, sr, si)
+    _gather_output(Y, k, F, n, sr, si)
+
+
+def _gather_inputs_py(U, M, k, F, n, sr, si):
+    """The input bands ``f < F`` of :func:`_gather` (slow length ``M``)."""
     P = U.shape[0]
     N = U.shape[2] // 2
-    M = Y.shape[1] // 2
     fold = N // M
+    L = 2 * n + 1
+    for f in range(F):
+        i = f // fold
+        shift = (f % fold) * M - n
+        for q in range(P):
+            for r in range(L):
+                for w in range(LANES):
+                    j = k[w] + r + shift
+                    if j < 0 or j >= N:
+                        j %= N
+                    sr[f, q, r, w] = U[q, i, 2 * j]
+                    si[f, q, r, w] = U[q, i, 2 * j + 1]
+
+
+def _gather_output_py(Y, k, F, n, sr, si):
+    """``-Y`` (``f = F``) of :func:`_gather`; ``Y`` of shape (P, 2M)."""
+    P = Y.shape[0]
+    M = Y.shape[1] // 2
     L = 2 * n + 1
     for q in range(P):
         for r in range(L):
             for w in range(LANES):
-                j = k[w] + r - n
-                for f in range(F):
-                    idx = 2 * ((j + (f % fold) * M) % N)
-                    sr[f, q, r, w] = U[q, f // fold, idx]
-                    si[f, q, r, w] = U[q, f // fold, idx + 1]
-                jm = 2 * (j % M)
+                jm = 2 * ((k[w] + r - n) % M)
                 sr[F, q, r, w] = -Y[q, jm]
                 si[F, q, r, w] = -Y[q, jm + 1]
 
@@ -476,7 +564,15 @@ def _moments_py(Sr, Si, q_basis, off, nd, Er, Ei, Or, Oi, mr, mi):
 def _gram_py(mr, mi, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const, rhs_ptr,
              rhs_mom, rhs_coef, Hr, Hi, gr, gi):
     """Packed lower Gram ``Hr/Hi`` and ``A^H b`` (``gr/gi``) from the moments."""
-    for e in range(ent_const.shape[0]):
+    _gram_entries(mr, mi, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const, 0,
+                  ent_const.shape[0], Hr, Hi)
+    _rhs(mr, mi, rhs_ptr, rhs_mom, rhs_coef, gr, gi)
+
+
+def _gram_entries_py(mr, mi, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const,
+                     e_lo, e_hi, Hr, Hi):
+    """Packed lower Gram entries ``e_lo..e_hi-1`` from the moments."""
+    for e in range(e_lo, e_hi):
         c0 = ent_const[e]
         for w in range(LANES):
             Hr[e, w] = c0
@@ -490,6 +586,10 @@ def _gram_py(mr, mi, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const, rhs_ptr,
         if ent_conj[e]:
             for w in range(LANES):
                 Hi[e, w] = -Hi[e, w]
+
+
+def _rhs_py(mr, mi, rhs_ptr, rhs_mom, rhs_coef, gr, gi):
+    """``A^H b`` (``gr/gi``) from the moments."""
     for i in range(rhs_ptr.shape[0] - 1):
         for w in range(LANES):
             gr[i, w] = 0.0
@@ -512,15 +612,22 @@ def _cholesky_py(Hr, Hi, scale2, ok, tol2, p):
     whole trailing matrix (measured 30 % faster than right-looking)."""
     for w in range(LANES):
         ok[w] = True
-    for j in range(p):
+    _cholesky_rows(Hr, Hi, scale2, ok, tol2, 0, p)
+
+
+def _cholesky_rows_py(Hr, Hi, scale2, ok, tol2, lo, hi):
+    """Rows ``lo..hi-1`` of the factor of :func:`_cholesky`, rows ``0..lo-1``
+    finished (row ``i`` of ``L`` needs only rows ``<= i``): ``lo = 0`` and
+    ``hi = p`` is the whole factor; ``ok`` is and-ed with the new pivots."""
+    for j in range(lo, hi):
         jj = j * (j + 1) // 2 + j
         for w in range(LANES):
             scale2[j, w] = abs(Hr[jj, w])
             ok[w] = ok[w] and scale2[j, w] > 2.2250738585072014e-308
-    for m in range(p):
+    for m in range(hi):
         rm = m * (m + 1) // 2
         mm = rm + m
-        for i in range(m, p):
+        for i in range(max(m, lo), hi):
             ri = i * (i + 1) // 2
             im = ri + m
             for j in range(m):
@@ -577,17 +684,35 @@ def _tail_inverse_py(Hr, Hi, n_centre, p, tr, ti):
 
 
 def _write_tail_cov_py(tr, ti, w, cvar, row):
-    """``cvar[row] = T^H T`` of lane ``w`` (see :func:`_tail_inverse`)."""
-    n_centre = tr.shape[0]
+    """``cvar[row] = T^H T`` of lane ``w`` (see :func:`_tail_inverse`) at the
+    leading ``cvar.shape[1]`` columns of the tail."""
+    n_centre = cvar.shape[1]
+    n_tail = tr.shape[0]
     for c in range(n_centre):
         for d in range(n_centre):
             ar = 0.0
             ai = 0.0
-            for i in range(max(c, d), n_centre):
+            for i in range(max(c, d), n_tail):
                 ar += tr[i, c, w] * tr[i, d, w] + ti[i, c, w] * ti[i, d, w]
                 ai += tr[i, c, w] * ti[i, d, w] - ti[i, c, w] * tr[i, d, w]
             cvar[row, c, d, 0] = ar
             cvar[row, c, d, 1] = ai
+
+
+def _tail_cov_py(tr, ti, n_centre, cr, ci):
+    """``c = T^H T`` at the leading ``n_centre`` columns of the tail (see
+    :func:`_tail_inverse`) for every lane; the sums of
+    :func:`_write_tail_cov`, in the same order."""
+    n_tail = tr.shape[0]
+    for c in range(n_centre):
+        for d in range(n_centre):
+            for w in range(LANES):
+                cr[c, d, w] = 0.0
+                ci[c, d, w] = 0.0
+            for i in range(max(c, d), n_tail):
+                for w in range(LANES):
+                    cr[c, d, w] += tr[i, c, w] * tr[i, d, w] + ti[i, c, w] * ti[i, d, w]
+                    ci[c, d, w] += tr[i, c, w] * ti[i, d, w] - ti[i, c, w] * tr[i, d, w]
 
 
 def _to_layout_py(xr, xi, to_layout, dr, di):
@@ -724,17 +849,25 @@ if AVAILABLE:  # pragma: no branch
         "error_model": "numpy",
     }
     _scratch = njit(**_opts)(_scratch_py)
+    _gather_inputs = njit(**_opts)(_gather_inputs_py)
+    _gather_output = njit(**_opts)(_gather_output_py)
     _gather = njit(**_opts)(_gather_py)
     _pair_series = njit(**_opts)(_pair_series_py)
     _moments = njit(**_opts)(_moments_py)
+    _gram_entries = njit(**_opts)(_gram_entries_py)
+    _rhs = njit(**_opts)(_rhs_py)
     _gram = njit(**_opts)(_gram_py)
+    _cholesky_rows = njit(**_opts)(_cholesky_rows_py)
     _cholesky = njit(**_opts)(_cholesky_py)
     _tail_inverse = njit(**_opts)(_tail_inverse_py)
     _write_tail_cov = njit(**_opts)(_write_tail_cov_py)
+    _tail_cov = njit(**_opts)(_tail_cov_py)
     _to_layout = njit(**_opts)(_to_layout_py)
     _chol_solve = njit(**_opts)(_chol_solve_py)
     _residual = njit(**_opts)(_residual_py)
     _adjoint = njit(**_opts)(_adjoint_py)
+    _solve_refined = njit(**_opts)(_solve_refined_py)
+    _write_lanes = njit(**_opts)(_write_lanes_py)
     _lane_group = njit(**_opts)(_lane_group)
     _solve_range = njit(**_opts)(_solve_range_py)
 
@@ -758,21 +891,29 @@ def solve_windows(
 ):
     """Solve the local normal equations of every window (compiled, threaded).
 
+    Several output rows (each its own local problem with its own denominator)
+    are solved in one pass: the Gram block of the input and transient columns,
+    the same for every row, is built and factored once per window, and each
+    row adds its denominator columns (a Schur complement).
+
     Parameters
     ----------
     U : ndarray of shape (P, N) or (P, n_u, N), complex
         Input DFTs; band ``f`` is input ``f // (N // M)`` (see
         :func:`lrmfrf.windows.band_indices`).
-    Y : ndarray of shape (P, M), complex
+    Y : ndarray of shape (P, M) or (P, n_rows, M), complex
+        Output DFTs: one output row, or ``n_rows`` rows solved together.
     slow_bins : ndarray of shape (B,), int
     weights : ndarray of shape (2n+1, p), float
         Basis polynomial of each column on the window (internal order).
     col_base : ndarray of shape (p,), int
-        Base sequence of each column (see :func:`moment_tables`).
+        Base sequence of each column (see :func:`moment_tables`); the columns
+        of ``-Y`` (code ``F + P``, the denominator) come last.
     F : int
         Number of input bands (``F n_u``).
     n_centre : int
-        The last ``n_centre`` columns get their ``(A^H A)^-1`` block.
+        The ``n_centre`` columns before the denominator columns get their
+        ``(A^H A)^-1`` block.
     fallback_tol, refine_tol : float
         Equilibrated-pivot and refinement-change thresholds.
     refine_steps : int
@@ -781,8 +922,8 @@ def solve_windows(
         not given; they depend on the layout only).
     to_layout : ndarray of shape (p, p), optional
         Real ``T``: ``theta`` is returned as ``theta_internal @ T`` (e.g.
-        :attr:`lrmfrf.windows.StructuredWindows.to_layout_matrix`, monomial
-        coefficients in layout order); default the identity.
+        :attr:`lrmfrf.windows.StructuredWindows.to_layout_matrix` with its
+        rows in the internal order of ``weights``); default the identity.
     n_threads : int, optional
         Threads sharing the windows; default ``numba.config.NUMBA_NUM_THREADS``
         (the number of cores unless the ``NUMBA_NUM_THREADS`` environment
@@ -794,11 +935,13 @@ def solve_windows(
         ``theta_internal @ to_layout``; NaN where the factorisation failed.
     rss : ndarray of shape (B,)
     centre_var : ndarray of shape (B, n_centre)
-        In the internal order (the last ``n_centre`` internal columns); with
-        ``return_cov=True`` the complex block of shape (B, n_centre,
-        n_centre) instead.
+        In the internal order of the centre columns; with ``return_cov=True``
+        the complex block of shape (B, n_centre, n_centre) instead.
     fast : ndarray of shape (B,), bool
         False where the window must be re-solved by QR.
+
+    With ``Y`` of shape (P, n_rows, M) every result has a leading axis of
+    length ``n_rows``.
     """
     if not AVAILABLE:
         raise ImportError("the compiled kernel needs numba (pip install numba)")
@@ -808,19 +951,36 @@ def solve_windows(
     P = U.shape[0]
     if U.ndim == 2:
         U = U[:, None, :]
+    one_row = Y.ndim == 2
+    rows_first = np.moveaxis(Y[:, None, :] if one_row else Y, 1, 0)  # (R, P, M)
+    R = rows_first.shape[0]
+    is_den = col_base == F + P
+    n_shared = p - int(np.count_nonzero(is_den))
+    if is_den[:n_shared].any():
+        raise ValueError(
+            "the denominator columns (col_base == F + P) must come last; reorder "
+            "weights and col_base"
+        )
     if tables is None:
         tables = moment_tables(weights, col_base, F, P)
-    theta = np.empty((B, p, 2))
-    rss = np.empty(B)
-    centre_cov = np.empty((B, n_centre, n_centre, 2))
-    fast = np.empty(B, dtype=np.bool_)
     t = tables
+    # the pairs with -Y (data index F first, or against a transient) come last
+    with_y = (
+        ((t["pair_kind"] == _DATA_DATA) & (t["pair_a"] == F))
+        | (t["pair_kind"] == _DATA_CONST)
+    )
+    n_shared_pairs = int(np.argmax(with_y)) if with_y.any() else with_y.size
+    theta = np.empty((R, B, p, 2))
+    rss = np.empty((R, B))
+    centre_cov = np.empty((R, B, n_centre, n_centre, 2))
+    fast = np.empty((R, B), dtype=np.bool_)
     if to_layout is None:
         to_layout = np.eye(p)
     args = (
-        _as_interleaved(U), _as_interleaved(Y),
+        _as_interleaved(U), _as_interleaved(rows_first),
         np.ascontiguousarray(slow_bins, dtype=np.int64), weights, col_base,
-        t["data_index"], int(F), int(n_centre), t["q_basis"], t["pair_kind"],
+        t["data_index"], int(F), int(n_centre), int(n_centre + p - n_shared),
+        n_shared, n_shared_pairs, t["q_basis"], t["pair_kind"],
         t["pair_a"], t["pair_b"], t["pair_nd"], t["pair_off"], t["ent_ptr"],
         t["ent_mom"], t["ent_coef"], t["ent_conj"], t["ent_const"], t["rhs_ptr"],
         t["rhs_mom"], t["rhs_coef"], int(t["n_moments"]),
@@ -828,11 +988,15 @@ def solve_windows(
         float(refine_tol), int(refine_steps), theta, rss, centre_cov, fast,
     )
     n_groups = (B + LANES - 1) // LANES
+    threads = n_threads or numba.config.NUMBA_NUM_THREADS
+    # at least 4 tasks per thread when the groups allow: the last ones then
+    # balance the threads (with 8 groups a task, 18 groups went 10 and 8)
+    per_task = max(1, min(_GROUPS_PER_TASK, n_groups // (4 * threads)))
     tasks = [
-        (start, min(n_groups, start + _GROUPS_PER_TASK))
-        for start in range(0, n_groups, _GROUPS_PER_TASK)
+        (start, min(n_groups, start + per_task))
+        for start in range(0, n_groups, per_task)
     ]
-    threads = min(n_threads or numba.config.NUMBA_NUM_THREADS, len(tasks))
+    threads = min(threads, len(tasks))
     if threads <= 1:
         _solve_range(*args, 0, n_groups)
     else:  # the kernel releases the GIL: threads share the lane groups
@@ -840,8 +1004,11 @@ def solve_windows(
             list(pool.map(lambda task: _solve_range(*args, *task), tasks))
     centre_cov = centre_cov.view(np.complex128)[..., 0]
     if not return_cov:
-        centre_cov = np.real(np.diagonal(centre_cov, axis1=1, axis2=2)).copy()
-    return theta.view(np.complex128)[..., 0], rss, centre_cov, fast
+        centre_cov = np.real(np.diagonal(centre_cov, axis1=-2, axis2=-1)).copy()
+    theta = theta.view(np.complex128)[..., 0]
+    if one_row:
+        return theta[0], rss[0], centre_cov[0], fast[0]
+    return theta, rss, centre_cov, fast
 
 
 def _as_interleaved(values: np.ndarray) -> np.ndarray:

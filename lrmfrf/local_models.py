@@ -6,7 +6,7 @@ closed form eq. (linearSolution), and returns the FRF in the ``F`` aliased
 bands with its Lemma 2 variance. ``one_sided_fast_grid`` maps the slow-bin
 results to the fast grid ``k = 0..N//2`` using conjugate symmetry.
 
-The estimators use the streaming form: ``iter_local_fits`` solves the same
+The estimators use the streaming form: ``iter_local_fit_rows`` solves the same
 problems chunk by chunk from the one-sided DFTs of the real records
 (``OneSidedSpectra``), each chunk on compact spectra that hold only its
 windows' bins, and ``fast_grid_targets`` says which fast bins a chunk fills;
@@ -22,6 +22,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy import fft as sp_fft
 
+from ._compiled import LANES
 from .solvers import (
     CHUNK_BYTES,
     lemma2_variance,
@@ -46,6 +47,7 @@ __all__ = [
     "fit_local_models",
     "fit_one_sided",
     "iter_local_fits",
+    "iter_local_fit_rows",
     "fast_grid_targets",
     "default_chunk_size",
     "half_slow_bins",
@@ -414,7 +416,14 @@ def _fit_chunk(U, Y, bins, layout, reference, options: _ChunkOptions):
     :func:`_mean_input_energy` of the full records. Returns a
     :class:`LocalModelFit` of the chunk (``slow_bins`` as given).
     """
-    F, nb = layout.F, layout.n_bands
+    return _fit_chunk_rows(U, Y[:, None], bins, layout, reference, options)[0]
+
+
+def _fit_chunk_rows(U, Y, bins, layout, reference, options: _ChunkOptions):
+    """:func:`_fit_chunk` of every output row of ``Y`` (P, n_rows, M'): a
+    list of :class:`LocalModelFit`, one per row (the compiled kernel solves
+    the rows together, sharing the input and transient block)."""
+    nb = layout.n_bands
     # Identifiability of G is decided by the input and transient columns.
     kwargs = {"rank_columns": layout.n_system + layout.n_transient}
     if options.return_cov:
@@ -422,18 +431,28 @@ def _fit_chunk(U, Y, bins, layout, reference, options: _ChunkOptions):
     if options.rank_tol is not None:
         kwargs["rank_tol"] = options.rank_tol
     if options.solver == "normal":
-        sol = solve_local_normal_equations(
+        solutions = solve_local_normal_equations(
             U, Y, bins, layout, refine_steps=options.refine_steps,
             backend=options.backend, **kwargs
         )
     else:
-        A, b = local_regressor(U, Y, bins, layout)
-        sol = solve_local_least_squares(
-            A, b, return_leverage=options.return_leverage, **kwargs
-        )
-        del A, b
-    excited = (_relative_excitation(U, Y.shape[1], bins, layout, reference)
+        solutions = []
+        for o in range(Y.shape[1]):
+            A, b = local_regressor(U, Y[:, o], bins, layout)
+            solutions.append(solve_local_least_squares(
+                A, b, return_leverage=options.return_leverage, **kwargs
+            ))
+            del A, b
+    excited = (_relative_excitation(U, Y.shape[-1], bins, layout, reference)
                > EXCITATION_TOL).all(axis=1)
+    return [
+        _chunk_fit(sol, bins, layout, excited, options) for sol in solutions
+    ]
+
+
+def _chunk_fit(sol, bins, layout, excited, options: _ChunkOptions):
+    """The :class:`LocalModelFit` of one output row from its solution."""
+    F, nb = layout.F, layout.n_bands
     well_posed = sol.well_posed & excited
     noise_var = noise_variance(sol.rss, layout.dof)
     system_cov = None
@@ -617,7 +636,7 @@ class OneSidedSpectra:
         """Full DFT of one output channel of every experiment: (P, M)."""
         return _full_spectrum(self.outputs[:, output], self.n_slow)
 
-    def window_spectra(self, start: int, stop: int, half_window: int, output: int):
+    def window_spectra(self, start: int, stop: int, half_window: int, output):
         """Compact spectra of the windows centred on slow bins ``start..stop-1``.
 
         The windows read slow bins ``k+r`` and fast bins ``k+r+fM`` (mod ``N``)
@@ -627,10 +646,13 @@ class OneSidedSpectra:
         spectra, read without wrapping (:func:`lrmfrf.windows.band_indices`
         with ``M'`` and ``N' = F M'``).
 
+        ``output`` is one output channel, or a list of them.
+
         Returns
         -------
         U : ndarray of shape (P, n_u F M'), complex
-        Y : ndarray of shape (P, M'), complex
+        Y : ndarray of shape (P, M'), or (P, len(output), M') for a list,
+            complex
         bins : ndarray of shape (stop - start,), int
             The compact window centres ``n .. n + stop - start - 1``.
         """
@@ -697,6 +719,7 @@ def iter_local_fits(
     layout, solver="normal", ...)`` at the same bins (each window's problem
     holds the same values; the compiled kernel solves every window alone, so
     chunking does not change it, and the numpy path uses the same chunks).
+    :func:`iter_local_fit_rows` does several output rows at once.
 
     Parameters
     ----------
@@ -720,19 +743,66 @@ def iter_local_fits(
     fit : LocalModelFit
         The chunk's results, ``slow_bins = start .. start + B_chunk - 1``.
     """
+    for start, fits in iter_local_fit_rows(
+        spectra, layout, outputs=[output], chunk_size=chunk_size,
+        backend=backend, refine_steps=refine_steps, return_cov=return_cov,
+    ):
+        yield start, fits[0]
+
+
+def iter_local_fit_rows(
+    spectra: OneSidedSpectra,
+    layout: LocalModelLayout,
+    *,
+    outputs=None,
+    chunk_size: int | None = None,
+    backend: str = "auto",
+    refine_steps: int = 1,
+    return_cov: bool = False,
+):
+    """:func:`iter_local_fits` of several output rows, chunk by chunk.
+
+    Each row is its own local problem (its own denominator), with the same
+    results as :func:`iter_local_fits` of that row; the compiled kernel
+    solves the rows of a window together and builds and factors the Gram
+    block of the input and transient columns once for all of them.
+
+    Parameters
+    ----------
+    spectra : OneSidedSpectra
+    layout : LocalModelLayout
+    outputs : sequence of int, optional
+        Output channels; default all of them.
+    chunk_size : int, optional
+        Windows per chunk; default :func:`default_chunk_size` for the numpy
+        path and :func:`stream_chunk_size` for the compiled kernel (divided
+        among the rows).
+    backend, refine_steps, return_cov
+        As in :func:`iter_local_fits`.
+
+    Yields
+    ------
+    start : int
+        First slow bin of the chunk.
+    fits : list of LocalModelFit
+        The chunk's results of each row of ``outputs``.
+    """
+    if outputs is None:
+        outputs = range(spectra.outputs.shape[1])
+    outputs = [int(o) for o in outputs]
     M = spectra.n_slow
     n_bins = M // 2 + 1
     backend = resolve_backend(backend, n_bins, layout.n_params)
     if chunk_size is None:
-        compiled = backend == "numba"
-        chunk_size = stream_chunk_size(layout) if compiled else default_chunk_size(
-            layout, "normal"
-        )
+        if backend == "numba":
+            chunk_size = stream_chunk_size(layout, len(outputs))
+        else:
+            chunk_size = default_chunk_size(layout, "normal")
     chunk_size = max(1, chunk_size)
     # the exponents normalise_spectra would take on the full DFTs (the same
     # largest |real| and |imag| parts), applied to each chunk's copy
     u_exponent = power_of_two_exponent(spectra.inputs)
-    y_exponent = power_of_two_exponent(spectra.outputs[:, output])
+    y_exponents = [power_of_two_exponent(spectra.outputs[:, o]) for o in outputs]
     mean_energy = _one_sided_mean_energy(spectra.inputs, spectra.n_samples)
     reference = _excitation_reference(
         scale_by_power_of_two(mean_energy, -2 * u_exponent), layout
@@ -742,14 +812,21 @@ def iter_local_fits(
         for start in range(0, n_bins, chunk_size):
             stop = min(n_bins, start + chunk_size)
             U, Y, bins = spectra.window_spectra(
-                start, stop, layout.half_window, output
+                start, stop, layout.half_window, outputs
             )
             U = scale_by_power_of_two(U, -u_exponent)
-            Y = scale_by_power_of_two(Y, -y_exponent)
-            fit = _fit_chunk(U, Y, bins, layout, reference, options)
+            for i, exponent in enumerate(y_exponents):
+                if exponent:
+                    Y[:, i] = scale_by_power_of_two(Y[:, i], -exponent)
+            fits = _fit_chunk_rows(U, Y, bins, layout, reference, options)
             del U, Y
-            fit = replace(fit, slow_bins=np.arange(start, stop))
-            yield start, rescale_local_fit(fit, u_exponent, y_exponent)
+            yield start, [
+                rescale_local_fit(
+                    replace(fit, slow_bins=np.arange(start, stop)), u_exponent,
+                    exponent,
+                )
+                for fit, exponent in zip(fits, y_exponents, strict=True)
+            ]
 
 
 def fit_one_sided(
@@ -774,13 +851,15 @@ def fit_one_sided(
     return _joined_fits(parts, half_slow_bins(spectra.n_slow))
 
 
-def stream_chunk_size(layout: LocalModelLayout) -> int:
+def stream_chunk_size(layout: LocalModelLayout, n_rows: int = 1) -> int:
     """Windows per chunk of :func:`iter_local_fits` with the compiled kernel.
 
     Bounds a chunk's arrays (compact spectra, parameters, Lemma 2 blocks,
-    window energies and the caller's per-chunk copies) to about
-    ``CHUNK_BYTES / 2``: the kernel solves each window alone, so the chunk
-    only sets how much is held at once.
+    window energies and the caller's per-chunk copies) of ``n_rows`` output
+    rows to about ``CHUNK_BYTES / 2``: the kernel solves each window alone,
+    so the chunk only sets how much is held at once. A multiple of the
+    kernel's lanes (:data:`lrmfrf._compiled.LANES`), so that only the last
+    chunk has a partly filled lane group.
     """
     p, nb, P = layout.n_params, layout.n_bands, layout.n_experiments
     n_centre = nb + P
@@ -790,7 +869,8 @@ def stream_chunk_size(layout: LocalModelLayout) -> int:
         + 8 * nb + 4 * P  # band values, variances, transients
         + 3 * layout.window * nb  # window energies (values and indices)
     )
-    return max(1024, CHUNK_BYTES // 2 // per_window)
+    size = max(1024, CHUNK_BYTES // 2 // (per_window * max(1, n_rows)))
+    return size - size % LANES
 
 
 def fast_grid_targets(start: int, stop: int, n_samples: int, F: int):

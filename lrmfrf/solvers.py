@@ -293,7 +293,10 @@ def solve_local_normal_equations(
     Parameters
     ----------
     U : ndarray of shape (P, N), complex
-    Y : ndarray of shape (P, M), complex
+    Y : ndarray of shape (P, M) or (P, n_rows, M), complex
+        One output row, or ``n_rows`` rows (one local problem each, with its
+        own denominator): the compiled kernel then builds and factors the
+        input and transient block of each window once for all rows.
     slow_bins : ndarray of shape (B,), int, in ``0..M-1``
     layout : LocalModelLayout
     rank_tol : float, default=1e-10
@@ -322,7 +325,7 @@ def solve_local_normal_equations(
 
     Returns
     -------
-    LocalSolution
+    LocalSolution, or list of LocalSolution (one per row of a 3-D ``Y``)
         ``theta`` in monomial coefficients and layout order; ``gram_inv_diag``
         is exact at the window-centre columns (``G(k+fM)/F`` and ``T(k)``,
         columns ``0..F-1`` and ``layout.transient_column(p)``) and NaN at the
@@ -331,26 +334,49 @@ def solve_local_normal_equations(
     """
     slow_bins = np.asarray(slow_bins, dtype=int)
     backend = resolve_backend(backend, slow_bins.size, layout.n_params)
-    windows = StructuredWindows(U, Y, slow_bins, layout)
+    rows = Y[:, None] if Y.ndim == 2 else Y  # (P, n_rows, M)
     n_centre = layout.n_bands + layout.n_experiments
-    c = cov_columns
     if backend == "numba":
-        weights, col_base, tables = _compiled_tables(layout)
-        theta, rss, centre_cov, fast = _compiled.solve_windows(
-            U.reshape(U.shape[0], layout.n_inputs, -1), Y, slow_bins, weights,
+        weights, col_base, tables, to_layout = _kernel_tables(layout)
+        solved = _compiled.solve_windows(
+            U.reshape(U.shape[0], layout.n_inputs, -1), rows, slow_bins, weights,
             col_base, layout.n_bands, n_centre,
             fallback_tol=fallback_tol, refine_tol=REFINEMENT_TOL,
-            refine_steps=refine_steps, tables=tables,
-            to_layout=windows.to_layout_matrix, return_cov=True,
+            refine_steps=refine_steps, tables=tables, to_layout=to_layout,
+            return_cov=True,
         )
     else:
-        theta, rss, centre_cov, fast = _normal_equations_numpy(
-            windows, n_centre, fallback_tol, refine_steps
+        solved = []
+        for o in range(rows.shape[1]):
+            windows = StructuredWindows(U, rows[:, o], slow_bins, layout)
+            theta, rss, centre_cov, fast = _normal_equations_numpy(
+                windows, n_centre, fallback_tol, refine_steps
+            )
+            solved.append((windows.to_layout(theta), rss, centre_cov, fast))
+        solved = [np.stack(parts) for parts in zip(*solved, strict=True)]
+    order = _empty_windows(layout).order
+    solutions = [
+        _with_qr_fallback(
+            U, rows[:, o], slow_bins, layout, order, *(part[o] for part in solved),
+            n_centre=n_centre, cov_columns=cov_columns, rank_tol=rank_tol,
+            rank_columns=rank_columns,
         )
-        theta = windows.to_layout(theta)
+        for o in range(rows.shape[1])
+    ]
+    return solutions[0] if Y.ndim == 2 else solutions
+
+
+def _with_qr_fallback(
+    U, Y, slow_bins, layout, order, theta, rss, centre_cov, fast, *, n_centre,
+    cov_columns, rank_tol, rank_columns,
+) -> LocalSolution:
+    """The :class:`LocalSolution` of one output row from the normal equations
+    (``order``: internal column order, the window-centre columns last), with
+    the windows they could not solve re-solved by QR."""
+    c = cov_columns
     centre_var = np.real(np.diagonal(centre_cov, axis1=1, axis2=2))
     gram_inv_diag = np.full((slow_bins.size, layout.n_params), np.nan)
-    gram_inv_diag[:, windows.order[-n_centre:]] = centre_var
+    gram_inv_diag[:, order[-n_centre:]] = centre_var
     # the internal centre columns start with the bands in layout order
     lead_cov = np.array(centre_cov[:, :c, :c]) if c else None
     well_posed = fast.copy()
@@ -461,15 +487,40 @@ def resolve_backend(
 
 @functools.lru_cache(maxsize=16)
 def _compiled_tables(layout: LocalModelLayout):
-    """Column weights, bases and moment tables of a layout (data-independent)."""
+    """Column weights, bases and moment tables of a layout (data-independent),
+    in the internal order of :class:`~lrmfrf.windows.StructuredWindows`."""
+    weights, col_base = _empty_windows(layout).column_weights()
+    tables = _compiled.moment_tables(
+        weights, col_base, layout.n_bands, layout.n_experiments
+    )
+    return weights, col_base, tables
+
+
+@functools.lru_cache(maxsize=16)
+def _kernel_tables(layout: LocalModelLayout):
+    """Column weights, bases, moment tables and ``to_layout`` matrix of
+    :func:`lrmfrf._compiled.solve_windows`: the internal order with the
+    denominator columns moved last (the kernel shares the Gram block of the
+    other columns between output rows)."""
     P = layout.n_experiments
-    empty = StructuredWindows(
+    empty = _empty_windows(layout)
+    weights, col_base = empty.column_weights()
+    den = col_base == layout.n_bands + P
+    move = np.concatenate([np.flatnonzero(~den), np.flatnonzero(den)])
+    weights, col_base = weights[:, move], col_base[move]
+    tables = _compiled.moment_tables(weights, col_base, layout.n_bands, P)
+    return weights, col_base, tables, empty.to_layout_matrix[move]
+
+
+@functools.lru_cache(maxsize=16)
+def _empty_windows(layout: LocalModelLayout) -> StructuredWindows:
+    """A :class:`~lrmfrf.windows.StructuredWindows` without data: its column
+    order, weights and ``to_layout`` matrix depend on the layout only."""
+    P = layout.n_experiments
+    return StructuredWindows(
         np.zeros((P, layout.n_bands)), np.zeros((P, 1)), np.zeros(0, dtype=int),
         layout,
     )
-    weights, col_base = empty.column_weights()
-    tables = _compiled.moment_tables(weights, col_base, layout.n_bands, P)
-    return weights, col_base, tables
 
 
 def _batched_cholesky(gram: np.ndarray) -> np.ndarray:

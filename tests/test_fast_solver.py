@@ -403,10 +403,10 @@ def test_qr_fallback_in_bounded_batches(monkeypatch, backend):
 def test_compiled_kernel_threads_do_not_change_the_result(noisy):
     """Each window is computed by the same code whatever thread runs it."""
     pytest.importorskip("numba")
-    from lrmfrf.solvers import REFINEMENT_TOL, _compiled_tables
+    from lrmfrf.solvers import REFINEMENT_TOL, _kernel_tables
 
     U, Y, layout = noisy
-    weights, col_base, tables = _compiled_tables(layout)
+    weights, col_base, tables, _ = _kernel_tables(layout)
     bins = np.arange(401)
     kw = {"fallback_tol": 1e-6, "refine_tol": REFINEMENT_TOL, "refine_steps": 1,
           "tables": tables}
@@ -464,3 +464,59 @@ def test_benchmark_data_matches_per_bin_qr():
     theta, _ = per_bin_qr(U, Y, layout, bins)
     np.testing.assert_allclose(est.local_fit_.system[bins], F * theta[:, :F],
                                rtol=1e-6)
+
+
+def test_output_rows_solved_together_equal_the_numpy_path_per_row():
+    """The compiled kernel solves all output rows of a window in one pass,
+    sharing the factor of the input and transient block: every row's band
+    values, Lemma 2 variances and covariances, noise variances and transients
+    equal those of the numpy normal equations on that row alone (1e-10
+    relative to each quantity's size), and those of the kernel on one row."""
+    pytest.importorskip("numba")
+    from lrmfrf.local_models import (
+        OneSidedSpectra,
+        _joined_fits,
+        half_slow_bins,
+        iter_local_fit_rows,
+        iter_local_fits,
+    )
+    from lrmfrf.testing import in_class_mimo_data
+
+    layout = LocalModelLayout(F=3, half_window=12, n_experiments=2, n_inputs=2,
+                              num_degree=2, transient_degree=1, den_degree=3)
+    u, y, _, _ = in_class_mimo_data(layout, 480, 3, 5)
+    y = y + 0.01 * np.random.default_rng(6).standard_normal(y.shape)
+    spectra = OneSidedSpectra.from_records(u, y, layout.F)
+    chunks = list(iter_local_fit_rows(spectra, layout, backend="numba",
+                                      return_cov=True, chunk_size=100))
+    bins = half_slow_bins(spectra.n_slow)
+    U = spectra.full_inputs()
+    fields = ("system", "system_var", "system_cov", "noise_var", "transient")
+    for o in range(3):
+        together = _joined_fits([fits[o] for _, fits in chunks], bins)
+        alone = _joined_fits([fit for _, fit in iter_local_fits(
+            spectra, layout, output=o, backend="numba", return_cov=True,
+            chunk_size=100)], bins)
+        ref = fit_local_models(U, spectra.full_outputs(o), layout,
+                               backend="numpy", return_cov=True)
+        assert ref.well_posed.all()
+        np.testing.assert_array_equal(together.well_posed, ref.well_posed)
+        for name in fields:
+            value, want = getattr(together, name), getattr(ref, name)
+            scale = np.abs(want).max()
+            np.testing.assert_allclose(value, want, rtol=0, atol=1e-10 * scale,
+                                       err_msg=name)
+            np.testing.assert_allclose(value, getattr(alone, name), rtol=0,
+                                       atol=1e-13 * scale, err_msg=name)
+
+
+def test_kernel_wants_the_denominator_columns_last(noisy):
+    pytest.importorskip("numba")
+    from lrmfrf.solvers import REFINEMENT_TOL, _compiled_tables
+
+    U, Y, layout = noisy
+    weights, col_base, tables = _compiled_tables(layout)  # denominator inside
+    with pytest.raises(ValueError, match="denominator columns .* must come last"):
+        _compiled.solve_windows(U, Y, np.arange(10), weights, col_base, 3, 4,
+                                fallback_tol=1e-6, refine_tol=REFINEMENT_TOL,
+                                refine_steps=1, tables=tables)

@@ -28,7 +28,7 @@ from ..local_models import (
     fast_grid_targets,
     fit_local_models,
     fit_one_sided,
-    iter_local_fits,
+    iter_local_fit_rows,
     rescale_local_fit,
     scale_by_power_of_two,
 )
@@ -194,15 +194,13 @@ class _LocalModelEstimator(_BaseFRFEstimator):
                                                std_method)
                 fits.append(fit)
             del U, self._refined_rows
-            rows = [[(0, fit)] for fit in fits]
-        else:  # streamed: no per-window parameters are kept
-            rows = [
-                iter_local_fits(
-                    spectra, layout, output=o, return_cov=True, backend=backend
-                ) for o in range(n_y)
-            ]
-        self._set_fitted(rows, layout, N, M, F, P, sample_time, u_exponent,
-                         y_exponent)
+            chunks = [(0, fits)]
+        else:  # streamed, all output rows at once: no per-window parameters kept
+            chunks = iter_local_fit_rows(
+                spectra, layout, return_cov=True, backend=backend
+            )
+        self._set_fitted(chunks, layout, N, M, F, P, n_y, sample_time,
+                         u_exponent, y_exponent)
         if whole:
             fits = [rescale_local_fit(fit, u_exponent, y_exponent) for fit in fits]
             self.local_fit_ = fits[0] if n_u == n_y == 1 else fits
@@ -214,16 +212,17 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         return self
 
     def _set_fitted(
-        self, rows, layout, N, M, F, P, sample_time, u_exponent, y_exponent
+        self, chunks, layout, N, M, F, P, n_y, sample_time, u_exponent, y_exponent
     ) -> None:
         """Set the fitted attributes from the local fits of each output row.
 
-        ``rows[o]`` yields ``(start, fit)``: the (normalised) results of slow
-        bins ``start..`` of output row ``o`` (all of them at once, or chunk
-        by chunk from :func:`lrmfrf.local_models.iter_local_fits`); they are
-        written into the outputs, allocated once, and not kept.
+        ``chunks`` yields ``(start, fits)``: ``fits[o]`` the (normalised)
+        results of slow bins ``start..`` of output row ``o`` (all of them at
+        once, or chunk by chunk from :func:`lrmfrf.local_models.
+        iter_local_fit_rows`); they are written into the outputs, allocated
+        once, and not kept.
         """
-        n_u, n_y = layout.n_inputs, len(rows)
+        n_u = layout.n_inputs
         siso = n_u == 1 and n_y == 1
         K, B = N // 2 + 1, M // 2 + 1
         self.frequencies_ = np.arange(K, dtype=float)
@@ -237,8 +236,8 @@ class _LocalModelEstimator(_BaseFRFEstimator):
             transient=np.empty((P, n_y, B), dtype=complex),
         )
         n_bad = n_unexcited = 0
-        for o, chunks in enumerate(rows):
-            for start, fit in chunks:
+        for start, fits in chunks:
+            for o, fit in enumerate(fits):
                 n_bad += int(np.count_nonzero(~fit.well_posed))
                 n_unexcited += int(np.count_nonzero(~fit.excited))
                 out.write(o, start, fit, N, F, u_exponent, y_exponent)
