@@ -25,16 +25,21 @@ from .._validation import (
 from ..exceptions import IdentifiabilityWarning
 from ..local_models import (
     OneSidedSpectra,
+    _joined_fits,
     fast_grid_targets,
     fit_local_models,
-    fit_one_sided,
-    iter_local_fits,
+    half_slow_bins,
     rescale_local_fit,
     scale_by_power_of_two,
 )
 from ..refinement import pool_summaries, refine_local_models, result_summary
 from ..solvers import resolve_backend
-from ..uncertainty import DEFAULT_STD_METHOD, calibrated_local_fit, check_std_method
+from ..uncertainty import (
+    DEFAULT_STD_METHOD,
+    calibrated_local_fit,
+    check_std_method,
+    iter_calibrated_fits,
+)
 from ..windows import LocalModelLayout
 from ._base import _BaseFRFEstimator, _normalise_in_place
 
@@ -175,8 +180,8 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         refines = self._refines(params)
         std_method = params.get("std_method", "lemma2")
         # refinement and the std routes of lrmfrf.uncertainty other than
-        # Lemma 2 need the whole per-window fit: not streamed
-        whole = refines or std_method != "lemma2"
+        # Lemma 2 and eiv need the whole per-window fit: not streamed
+        whole = refines or std_method not in ("lemma2", "eiv")
         if whole:
             U = spectra.full_inputs()  # (P, n_u N): the F n_u bands
             self._refined_rows = []  # refinement summaries, one per output row
@@ -197,8 +202,9 @@ class _LocalModelEstimator(_BaseFRFEstimator):
             rows = [[(0, fit)] for fit in fits]
         else:  # streamed: no per-window parameters are kept
             rows = [
-                iter_local_fits(
-                    spectra, layout, output=o, return_cov=True, backend=backend
+                iter_calibrated_fits(
+                    spectra, layout, std_method, output=o, return_cov=True,
+                    backend=backend,
                 ) for o in range(n_y)
             ]
         self._set_fitted(rows, layout, N, M, F, P, sample_time, u_exponent,
@@ -209,7 +215,7 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         else:
             self._local_fit_cache_ = None
             self._local_fit_source_ = _LocalFitSource(
-                spectra, layout, u_exponent, y_exponent, backend
+                spectra, layout, u_exponent, y_exponent, backend, std_method
             )
         return self
 
@@ -719,16 +725,20 @@ class _LocalFitSource:
     u_exponent: int
     y_exponent: int
     backend: str
+    std_method: str = "lemma2"
 
     def compute(self):
         """The fit's ``local_fit_``: a LocalModelFit, or a list per output row."""
         n_y = self.spectra.outputs.shape[1]
+        bins = half_slow_bins(self.spectra.n_slow)
         fits = [
             rescale_local_fit(
-                fit_one_sided(
-                    self.spectra, self.layout, output=o, return_cov=True,
-                    backend=self.backend,
-                ),
+                _joined_fits([
+                    fit for _, fit in iter_calibrated_fits(
+                        self.spectra, self.layout, self.std_method, output=o,
+                        return_cov=True, backend=self.backend,
+                    )
+                ], bins),
                 self.u_exponent, self.y_exponent,
             )
             for o in range(n_y)
