@@ -96,7 +96,7 @@ def test_eiv_is_lemma2_without_denominator(record):
 
 def test_std_method_options(record):
     """Every route gives a finite, positive std on the same bins and the same
-    FRF; frf_cov_ keeps frf_std_ on its diagonal; lemma2 is the old value."""
+    FRF; frf_cov_ keeps frf_std_ on its diagonal; the default is eiv."""
     u, y = record
     ref = LRMBeyondNyquist(std_method="lemma2").fit(u, y, 3)
     for method in STD_METHODS:
@@ -107,9 +107,9 @@ def test_std_method_options(record):
         np.testing.assert_allclose(est.frf_std_**2, np.real(est.frf_cov_[0, 0, 0]),
                                    rtol=1e-12)
     default = LRMBeyondNyquist().fit(u, y, 3)
-    assert default.std_method == "lemma2"  # eiv is opt-in until it is compiled
-    np.testing.assert_array_equal(default.frf_std_, ref.frf_std_)
+    assert default.std_method == "eiv"  # compiled and streamed: the default
     eiv = LRMBeyondNyquist(std_method="eiv").fit(u, y, 3)
+    np.testing.assert_array_equal(default.frf_std_, eiv.frf_std_)
     ratio = np.median(eiv.frf_std_ / ref.frf_std_)
     assert 1.03 < ratio < 1.4  # Lemma 2 is low: the point of the eiv route
 

@@ -342,18 +342,18 @@ class LRMBeyondNyquist(_LocalModelEstimator):
     verbose : bool, default=False
         Show a progress bar over the chunks of windows during refinement
         (long records; needs tqdm).
-    std_method : {"lemma2", "eiv", "hc", "eiv_pooled"}, default="lemma2"
+    std_method : {"eiv", "lemma2", "hc", "eiv_pooled", "eiv_dof"}, default="eiv"
         How ``frf_std_`` and ``frf_cov_`` of the closed form are computed
         (:mod:`lrmfrf.uncertainty`, ``docs/method.md`` section 5).
-        ``"lemma2"``: the paper's eq. (Variance) (about 0.76-0.91x the
-        Monte-Carlo std on random stages); ``"eiv"``: the errors-in-variables
-        sandwich, whose equation noise is the output noise times the local
-        denominator, with the noise variance from the residual over its
-        expected size (about 1.0x). ``"eiv"`` is computed in numpy on the
-        whole per-window fit: about 2x the time of a short fit and far more
-        on long records (not streamed in bounded memory), so it is opt-in
-        until it runs in the compiled kernel. ``"hc"``, ``"eiv_pooled"``: the
-        other routes studied. Refined fits (``sk_iterations``,
+        ``"eiv"``: the errors-in-variables sandwich, whose equation noise is
+        the output noise times the local denominator, with the noise variance
+        from the residual over its expected size (about 1.0x the Monte-Carlo
+        std on random stages); compiled (numba) and streamed chunk by chunk
+        like the closed form, at about 2-3x its time. ``"lemma2"``: the
+        paper's eq. (Variance) (about 0.76-0.91x), the earlier default and
+        the fastest. ``"hc"``, ``"eiv_pooled"``, ``"eiv_dof"``: the other
+        routes studied (numpy, on the whole per-window fit). Refined fits
+        (``sk_iterations``,
         ``lm_iterations``) keep their linearised variance.
 
     Attributes
@@ -370,10 +370,11 @@ class LRMBeyondNyquist(_LocalModelEstimator):
         ``F`` bands with one denominator and one transient per experiment.
     frf_std_ : ndarray of shape (N//2+1,) or (n_y, n_u, N//2+1)
         Standard deviation of ``frf_``, ``sqrt(E|G_hat - G|^2)``, from the
-        route ``std_method`` (Lemma 2 with ``std_method="lemma2"``).
+        route ``std_method`` (the errors-in-variables sandwich by default,
+        Lemma 2 with ``std_method="lemma2"``).
     frf_cov_ : ndarray of shape (n_y, n_u, n_u, N//2+1), complex
         Always 4-D: ``E[dG_oi conj(dG_oj)]`` between the entries of one output
-        row at each fast bin (Lemma 2 per output row); ``frf_std_ ==
+        row at each fast bin (route ``std_method`` per output row); ``frf_std_ ==
         sqrt(real(diagonal))``. Cross-band and cross-output covariances are
         not kept.
     valid_ : ndarray of shape (N//2+1,) or (n_y, n_u, N//2+1), bool
