@@ -76,6 +76,7 @@ __all__ = [
     "STD_METHODS",
     "DEFAULT_STD_METHOD",
     "calibrated_local_fit",
+    "calibrated_refined_fit",
     "iter_calibrated_fits",
     "eiv_terms",
     "check_std_method",
@@ -580,4 +581,45 @@ def calibrated_local_fit(U, Y, layout: LocalModelLayout, local_fit, method: str)
         local_fit,
         system_var=var,
         system_cov=None if local_fit.system_cov is None else cov,
+    )
+
+
+def calibrated_refined_fit(U, Y, layout: LocalModelLayout, closed_fit, refined_fit,
+                           method: str):
+    """A refined fit's linearised covariance with the ``"eiv"`` noise level.
+
+    The refined (SK/LM) estimate keeps the shape of its linearised
+    covariance (at the final estimate), but its noise variance ``J / q`` is
+    low: the refined fit absorbs part of the noise (about 0.66x the
+    Monte-Carlo std after LM). With ``method="eiv"`` the covariance is scaled
+    per window by ``sigma^2 / noise_var``, ``sigma^2 = ||r||^2 / sum_r
+    |e(x_r)|^2 (1 - h_r)`` of the closed form on the same window (the noise
+    estimate of the ``"eiv"`` route, see :func:`eiv_terms`); the other
+    routes leave the refined fit as it is.
+
+    Parameters
+    ----------
+    U, Y : ndarray
+        The (normalised) spectra of the fit.
+    layout : LocalModelLayout
+    closed_fit, refined_fit : LocalModelFit
+        The closed form and its refinement on the same windows.
+    method : str
+
+    Returns
+    -------
+    LocalModelFit
+        ``refined_fit`` itself, or a copy with ``system_var`` and
+        ``system_cov`` scaled.
+    """
+    if method != "eiv" or _keeps_lemma2(method, layout):
+        return refined_fit
+    _, trace = eiv_terms(U, Y, layout, closed_fit.theta, closed_fit.slow_bins)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        factor = closed_fit.rss / trace / refined_fit.noise_var
+    cov = refined_fit.system_cov
+    return replace(
+        refined_fit,
+        system_var=refined_fit.system_var * factor[:, None],
+        system_cov=None if cov is None else cov * factor[:, None, None],
     )

@@ -37,6 +37,7 @@ from ..solvers import resolve_backend
 from ..uncertainty import (
     DEFAULT_STD_METHOD,
     calibrated_local_fit,
+    calibrated_refined_fit,
     check_std_method,
     iter_calibrated_fits,
 )
@@ -191,9 +192,11 @@ class _LocalModelEstimator(_BaseFRFEstimator):
                 local_fit = fit_local_models(
                     U, Y_o, layout, return_cov=True, backend=backend
                 )
-                if refines:  # refined fits keep their linearised variance
+                if refines:  # linearised variance, at the eiv noise level
                     fit = self._refine(U, Y_o, layout, local_fit, params,
                                        y_exponent)
+                    fit = calibrated_refined_fit(U, Y_o, layout, local_fit, fit,
+                                                 std_method)
                 else:  # closed form: the std route (lrmfrf.uncertainty)
                     fit = calibrated_local_fit(U, Y_o, layout, local_fit,
                                                std_method)
@@ -353,8 +356,11 @@ class LRMBeyondNyquist(_LocalModelEstimator):
         paper's eq. (Variance) (about 0.76-0.91x), the earlier default and
         the fastest. ``"hc"``, ``"eiv_pooled"``, ``"eiv_dof"``: the other
         routes studied (numpy, on the whole per-window fit). Refined fits
-        (``sk_iterations``,
-        ``lm_iterations``) keep their linearised variance.
+        (``sk_iterations``, ``lm_iterations``) keep the shape of their
+        linearised variance; with ``"eiv"`` it is scaled to the closed form's
+        errors-in-variables noise variance of the same window
+        (:func:`lrmfrf.uncertainty.calibrated_refined_fit`), with the other
+        routes it is the refinement's own.
 
     Attributes
     ----------
