@@ -264,8 +264,10 @@ def refined_monte_carlo(system, F, snr_db, n_runs, seed, refinements):
                                fit.slow_bins, with_hc=False)
         s2_eiv = terms.rss / terms.eiv_trace
         for name, kwargs in settings.items():
-            e = closed if not kwargs else LRMBeyondNyquist(half_window=n,
-                                                           **kwargs).fit(u, y, F)
+            # refined fits with their own noise level ("as is"); "eiv noise"
+            # is then what the default std_method="eiv" gives them
+            e = closed if not kwargs else LRMBeyondNyquist(
+                half_window=n, std_method="lemma2", **kwargs).fit(u, y, F)
             est[name].append(e.frf_)
             var[name]["as is"].append(e.frf_std_**2)
             if not kwargs:  # the closed form's std is already the route's
