@@ -18,7 +18,9 @@ route the table reports, over the stages:
   (``lrmfrf.simulate.true_frf``); 98.2 % for a complex Gaussian with a known
   std.
 
-``eiv_true`` is the ``eiv`` sandwich with the true noise variance
+``default`` is the estimator's own ``frf_std_`` (the default ``std_method``,
+compiled and streamed); the other routes are recomputed in numpy from its
+``local_fit_``. ``eiv_true`` is the ``eiv`` sandwich with the true noise variance
 (``M sigma^2``): it separates the shape of the covariance from the estimate
 of the noise level. Run::
 
@@ -44,7 +46,7 @@ from lrmfrf.signals import multisine, orthogonal_multisines
 from lrmfrf.simulate import simulate, true_frf
 from lrmfrf.uncertainty import band_covariance, variance_terms
 
-ROUTES = ("lemma2", "eiv", "hc", "eiv_pooled", "eiv_dof", "eiv_true")
+ROUTES = ("default", "lemma2", "eiv", "hc", "eiv_pooled", "eiv_dof", "eiv_true")
 
 #: Half window per F: the default 18, and 23 at F = 5 (10 residual dof).
 HALF_WINDOW = {2: 18, 3: 18, 4: 18, 5: 23}
@@ -82,11 +84,16 @@ def stage_systems(seeds, F, *, loops=("closed",), channels=("G_y4", "G_z"),
 
 def route_variances(U, Y, est, routes, true_noise_variance):
     """Per route, the fast-grid variance of one fit, shape (N//2+1,)."""
+    out = {}
+    if "default" in routes:  # the estimator's own frf_std_
+        out["default"] = est.frf_std_**2
+        routes = [r for r in routes if r != "default"]
+        if not routes:
+            return out
     fit, layout = est.local_fit_, est.layout_
     terms = variance_terms(U, Y, layout, fit.theta, fit.slow_bins)
     M = Y.shape[1]
     N = M * layout.F
-    out = {}
     for route in routes:
         if route == "eiv_true":
             s2 = np.full(fit.slow_bins.size, true_noise_variance)
@@ -257,8 +264,10 @@ def refined_monte_carlo(system, F, snr_db, n_runs, seed, refinements):
                                fit.slow_bins, with_hc=False)
         s2_eiv = terms.rss / terms.eiv_trace
         for name, kwargs in settings.items():
-            e = closed if not kwargs else LRMBeyondNyquist(half_window=n,
-                                                           **kwargs).fit(u, y, F)
+            # refined fits with their own noise level ("as is"); "eiv noise"
+            # is then what the default std_method="eiv" gives them
+            e = closed if not kwargs else LRMBeyondNyquist(
+                half_window=n, std_method="lemma2", **kwargs).fit(u, y, F)
             est[name].append(e.frf_)
             var[name]["as is"].append(e.frf_std_**2)
             if not kwargs:  # the closed form's std is already the route's
@@ -283,7 +292,7 @@ def refined_monte_carlo(system, F, snr_db, n_runs, seed, refinements):
 
 
 def mimo_monte_carlo(system, F, snr_db, n_runs, seed,
-                     routes=("lemma2", "eiv", "eiv_pooled")):
+                     routes=("default", "lemma2", "eiv", "eiv_pooled")):
     """Std ratio and coverage of each route on a 2x2 system, all four entries.
 
     Two orthogonal random-phase multisine experiments
@@ -306,11 +315,13 @@ def mimo_monte_carlo(system, F, snr_db, n_runs, seed,
     est, var = [], {r: [] for r in routes}
     for _ in range(n_runs):
         y = y_clean + sigma * rng.standard_normal(y_clean.shape)
-        fit = LRMBeyondNyquist(half_window=HALF_WINDOW[F],
-                               std_method="lemma2").fit(u, y, F)
+        fit = LRMBeyondNyquist(half_window=HALF_WINDOW[F]).fit(u, y, F)
         est.append(fit.frf_)
         Y = dft(y)
         for route in routes:
+            if route == "default":  # the estimator's own frf_std_
+                var[route].append(fit.frf_std_**2)
+                continue
             v = np.empty(truth.shape)
             for o, lf in enumerate(fit.local_fit_):
                 terms = variance_terms(U, Y[:, o], fit.layout_, lf.theta,
@@ -340,7 +351,8 @@ def _mimo_main(args) -> int:
 
     from lrmfrf.plants import mimo_wafer_stage
 
-    routes = ("lemma2", "eiv", "eiv_pooled")
+    routes = tuple(r for r in args.routes
+                   if r in ("default", "lemma2", "eiv", "eiv_pooled"))
     print(f"2x2 (G[0:2, 0:2]), two orthogonal experiments, {args.runs} runs; "
           "ratio / coverage per route")
     for F in args.F:

@@ -36,6 +36,12 @@ prints the ratio (target <= 12x); ``LRM LM50/closed`` likewise with
 ``lm_iterations=50`` (target <= 30x). ``--sk-only`` runs just those two cases
 (``--quick``: at N = 1.2e5).
 
+``LRM eiv/lemma2``: the closed form with ``std_method="eiv"`` (the default,
+errors-in-variables std, compiled and streamed) and with ``"lemma2"`` on the
+same ``N = 1.2e6``, F = 3 data in one process, best of 3 each, interleaved;
+the summary prints the ratio (target <= 1.5x). ``--std-only`` runs just that
+case.
+
 Run::
 
     python benchmarks/speed.py            # N up to 1.2e6, about 2-4 minutes
@@ -189,6 +195,8 @@ def run_case(method: str, n_samples: int, F: int) -> dict:
         out.update(_refined_vs_closed(u, y, F, n, sk_iterations=10))
     elif method == "LRM LM50/closed":
         out.update(_refined_vs_closed(u, y, F, n, lm_iterations=50))
+    elif method == "LRM eiv/lemma2":
+        out.update(_std_vs_lemma2(u, y, F, n))
     elif method == "LRM loop":
         elapsed, cpu = _per_bin_loop(u, y, F, n)
         out.update(fit_s=elapsed * (M // 2 + 1), cpu_s=cpu * (M // 2 + 1))
@@ -262,6 +270,25 @@ def _refined_vs_closed(u, y, F, n, repeats: int = 3, **refinement) -> dict:
     closed, refined = best(), best(**refinement)
     return {"fit_s": refined, "cpu_s": math.nan, "closed_s": closed,
             "refined_ratio": refined / closed}
+
+
+def _std_vs_lemma2(u, y, F, n, repeats: int = 3) -> dict:
+    """Best-of wall times of the closed form with ``std_method="eiv"`` (the
+    calibrated std, compiled and streamed) and with ``"lemma2"``, one process,
+    interleaved so that a change of the machine's load hits both alike."""
+    from lrmfrf import LRMBeyondNyquist
+
+    for method in ("eiv", "lemma2"):  # warm-up (JIT, caches)
+        LRMBeyondNyquist(half_window=n, std_method=method).fit(
+            u[: 3000 * F], y[:3000], F)
+    best = {"eiv": math.inf, "lemma2": math.inf}
+    for _ in range(repeats):
+        for method in best:
+            t0 = time.perf_counter()
+            LRMBeyondNyquist(half_window=n, std_method=method).fit(u, y, F)
+            best[method] = min(best[method], time.perf_counter() - t0)
+    return {"fit_s": best["eiv"], "cpu_s": math.nan, "closed_s": best["lemma2"],
+            "std_ratio": best["eiv"] / best["lemma2"]}
 
 
 def _per_bin_loop(u, y, F, n) -> tuple[float, float]:
@@ -427,6 +454,10 @@ def main(argv=None) -> None:
         "--sk-only", action="store_true",
         help="only the SK10 vs closed-form ratio at N = 1.2e6 (issue 14)",
     )
+    parser.add_argument(
+        "--std-only", action="store_true",
+        help="only the std_method='eiv' vs 'lemma2' fit-time ratio at N = 1.2e6",
+    )
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
@@ -438,6 +469,8 @@ def main(argv=None) -> None:
     if args.sk_only:
         big = 120_000 if args.quick else 1_200_000
         selected = [("LRM SK10/closed", big, 3), ("LRM LM50/closed", big, 3)]
+    if args.std_only:
+        selected = [("LRM eiv/lemma2", 120_000 if args.quick else 1_200_000, 3)]
     for method, N, F in selected:
         row = run_child(method, N, F, args.backend)
         rows.append(row)
@@ -453,6 +486,8 @@ def main(argv=None) -> None:
         name = "speed_mimo.csv"
     if args.sk_only:
         name = "speed_sk.csv"
+    if args.std_only:
+        name = "speed_std.csv"
     with open(RESULTS / name, "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
         writer.writeheader()
@@ -460,7 +495,7 @@ def main(argv=None) -> None:
     print(f"Data: {rows[0].get('data', '?')}; {os.cpu_count()} CPUs.\n")
     print(markdown(rows))
     print()
-    if not (args.mimo_only or args.sk_only):
+    if not (args.mimo_only or args.sk_only or args.std_only):
         print(summary(rows))
     for row in rows:
         if "mimo_ratio" in row:
@@ -468,6 +503,13 @@ def main(argv=None) -> None:
                 f"\nMIMO: 2x2 LRM fit of P = 2 experiments of N = {row['N']} took "
                 f"{row['fit_s']:.3f} s, {row['mimo_ratio']:.2f}x the SISO fit of one "
                 f"record ({row['siso_s']:.3f} s) in the same process (target <= 6x)."
+            )
+        if "std_ratio" in row:
+            print(
+                f"\nstd: LRMBeyondNyquist(std_method='eiv') at N = {row['N']} took "
+                f"{row['fit_s']:.3f} s, {row['std_ratio']:.2f}x the fit with "
+                f"std_method='lemma2' ({row['closed_s']:.3f} s) in the same process "
+                "(target <= 1.5x)."
             )
         if "refined_ratio" in row:
             sk = row["method"].startswith("LRM SK10")

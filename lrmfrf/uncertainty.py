@@ -51,18 +51,35 @@ finite sample properties", J. Econometrics 29 (1985) (HC2).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .local_models import _single_threaded_blas
-from .solvers import RANK_TOL, qr_chunk_size
+from . import _compiled, _compiled_uncertainty
+from .local_models import (
+    _single_threaded_blas,
+    iter_local_fit_rows,
+    iter_local_fits,
+    power_of_two_exponent,
+    scale_by_power_of_two,
+)
+from .solvers import (
+    CHOLESKY_FALLBACK_TOL,
+    RANK_TOL,
+    _compiled_tables,
+    qr_chunk_size,
+    resolve_backend,
+)
 from .windows import LocalModelLayout, local_regressor, window_offsets
 
 __all__ = [
     "STD_METHODS",
     "DEFAULT_STD_METHOD",
     "calibrated_local_fit",
+    "calibrated_refined_fit",
+    "iter_calibrated_fits",
+    "eiv_terms",
     "check_std_method",
     "VarianceTerms",
     "variance_terms",
@@ -77,8 +94,10 @@ STD_METHODS = ("lemma2", "eiv", "hc", "eiv_pooled", "eiv_dof")
 #: (max abs) are re-done with the pseudo-inverse of the truncated SVD.
 INVERSE_TOL = 1e-6
 
-#: The route of ``frf_std_`` by default (``benchmarks/generalisation_std.py``).
-DEFAULT_STD_METHOD = "lemma2"
+#: The route of ``frf_std_`` by default (``benchmarks/generalisation_std.py``):
+#: the errors-in-variables sandwich, compiled and streamed (:func:`eiv_terms`,
+#: :func:`iter_calibrated_fits`).
+DEFAULT_STD_METHOD = "eiv"
 
 
 @dataclass
@@ -354,10 +373,221 @@ def check_std_method(value, name: str = "std_method") -> str:
     if not isinstance(value, str) or value not in STD_METHODS:
         raise ValueError(
             f"`{name}` must be one of {STD_METHODS}; got {value!r} instead. Use "
-            f"{DEFAULT_STD_METHOD!r} (the default) or 'lemma2' for the paper's "
-            "eq. (Variance)."
+            f"{DEFAULT_STD_METHOD!r} (the default, calibrated) or 'lemma2' for "
+            "the paper's eq. (Variance)."
         )
     return value
+
+
+@functools.lru_cache(maxsize=16)
+def _weighted_tables(layout: LocalModelLayout) -> dict:
+    """Row-weighted moment tables of a layout (for ``A^H diag(w) A``)."""
+    weights, col_base, _ = _compiled_tables(layout)
+    return _compiled.moment_tables(
+        weights, col_base, layout.n_bands, layout.n_experiments, weighted=True
+    )
+
+
+def eiv_terms(
+    U: np.ndarray,
+    Y: np.ndarray,
+    layout: LocalModelLayout,
+    theta: np.ndarray,
+    slow_bins: np.ndarray,
+    *,
+    backend: str = "auto",
+) -> tuple[np.ndarray, np.ndarray]:
+    """``eiv_lead`` and ``eiv_trace`` of :class:`VarianceTerms`, fast.
+
+    The compiled kernel (:func:`lrmfrf._compiled_uncertainty.eiv_windows`)
+    when the backend resolves to ``"numba"``; windows whose Gram matrix fails
+    its pivot check there, and every window with ``backend="numpy"``, go
+    through :func:`variance_terms` (the dense regressor). Both give the same
+    terms up to round-off.
+
+    Parameters
+    ----------
+    U : ndarray of shape (P, n_u N), complex
+    Y : ndarray of shape (P, M), complex
+    layout : LocalModelLayout
+    theta : ndarray of shape (B, n_params), complex
+        Closed-form parameters; only the denominator columns are read (NaN
+        rows give NaN terms).
+    slow_bins : ndarray of shape (B,), int
+    backend : {"auto", "numpy", "numba"}, default "auto"
+
+    Returns
+    -------
+    eiv_lead : ndarray of shape (B, n_bands, n_bands), complex
+    eiv_trace : ndarray of shape (B,)
+    """
+    slow_bins = np.asarray(slow_bins, dtype=int)
+    B = slow_bins.size
+    backend = resolve_backend(backend, B, layout.n_params)
+    if backend != "numba":
+        terms = variance_terms(U, Y, layout, theta, slow_bins, with_hc=False)
+        return terms.eiv_lead, terms.eiv_trace
+    good = np.all(np.isfinite(theta), axis=1)
+    den = np.where(good[:, None], theta[:, layout.den_columns], 0.0)
+    _, x = window_offsets(layout.half_window)
+    powers = x[:, None] ** np.arange(1, layout.den_degree + 1)
+    weights, col_base, tables = _compiled_tables(layout)
+    nb = layout.n_bands
+    lead, hw_trace, w_sum, w_min, w_max, ok = _compiled_uncertainty.eiv_windows(
+        U.reshape(U.shape[0], layout.n_inputs, -1), Y, slow_bins, den, powers,
+        weights, col_base, nb, nb + layout.n_experiments, tables=tables,
+        weighted_tables=_weighted_tables(layout),
+        fallback_tol=CHOLESKY_FALLBACK_TOL,
+    )
+    # as variance_terms: the trace within q min w .. q max w
+    q = max(layout.dof, 0)
+    trace = np.clip(w_sum - hw_trace, q * w_min, q * w_max)
+    redo = np.flatnonzero(good & ~ok)
+    chunk = qr_chunk_size(layout)
+    with _single_threaded_blas():
+        for start in range(0, redo.size, chunk):
+            part = redo[start : start + chunk]
+            terms = _terms_of_chunk(U, Y, layout, theta[part], slow_bins[part],
+                                    False)
+            lead[part] = terms[1]
+            trace[part] = terms[4]
+    lead[~good] = np.nan
+    trace[~good] = np.nan
+    return lead, trace
+
+
+def _eiv_covariance(lead, trace, rss, layout):
+    """``F^2 sigma^2 S^H diag(w) S`` with ``sigma^2 = ||r||^2 / trace``."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s2 = rss / trace
+    return layout.F**2 * lead * s2[:, None, None]
+
+
+def _with_covariance(local_fit, cov):
+    """``local_fit`` with the band covariance ``cov`` (NaN where not well
+    posed) as ``system_var`` and, when present, ``system_cov``."""
+    cov[~local_fit.well_posed] = np.nan
+    var = np.real(np.diagonal(cov, axis1=1, axis2=2)).copy()
+    return replace(
+        local_fit,
+        system_var=var,
+        system_cov=None if local_fit.system_cov is None else cov,
+    )
+
+
+def _keeps_lemma2(method: str, layout: LocalModelLayout) -> bool:
+    """Whether route ``method`` gives Lemma 2's variance on ``layout``."""
+    return (method == "lemma2" or layout.dof <= 0
+            or (method == "eiv" and layout.den_degree == 0))
+
+
+def iter_calibrated_fits(
+    spectra,
+    layout: LocalModelLayout,
+    method: str,
+    *,
+    output: int = 0,
+    backend: str = "auto",
+    return_cov: bool = False,
+):
+    """:func:`lrmfrf.local_models.iter_local_fits` with the variance of route
+    ``method``, chunk by chunk (bounded memory).
+
+    Parameters
+    ----------
+    spectra : lrmfrf.local_models.OneSidedSpectra
+    layout : LocalModelLayout
+    method : {"lemma2", "eiv"}
+        Routes that stream (the others need :func:`calibrated_local_fit`).
+    output : int, default 0
+    backend : {"auto", "numpy", "numba"}, default "auto"
+    return_cov : bool, default False
+
+    Yields
+    ------
+    start : int
+    fit : LocalModelFit
+        As :func:`~lrmfrf.local_models.iter_local_fits`, with ``system_var``
+        (and ``system_cov``) of route ``method``; equal to
+        ``calibrated_local_fit`` on the full spectra up to round-off.
+    """
+    if method not in ("lemma2", "eiv"):
+        raise ValueError(
+            f"`method` {method!r} does not stream; use 'lemma2' or 'eiv', or "
+            "calibrated_local_fit on the whole fit."
+        )
+    fits = iter_local_fits(spectra, layout, output=output, backend=backend,
+                           return_cov=return_cov)
+    if _keeps_lemma2(method, layout):
+        yield from fits
+        return
+    backend = resolve_backend(backend, spectra.n_slow // 2 + 1, layout.n_params)
+    # the normalisation of iter_local_fits: the terms are computed on the
+    # normalised chunk and the covariance scaled back as the system's square
+    u_exponent = power_of_two_exponent(spectra.inputs)
+    y_exponent = power_of_two_exponent(spectra.outputs[:, output])
+    for start, fit in fits:
+        stop = start + fit.slow_bins.size
+        U, Y, bins = spectra.window_spectra(start, stop, layout.half_window, output)
+        U = scale_by_power_of_two(U, -u_exponent)
+        Y = scale_by_power_of_two(Y, -y_exponent)
+        # the terms read only the (dimensionless) denominator of theta
+        lead, trace = eiv_terms(U, Y, layout, fit.theta, bins, backend=backend)
+        del U, Y
+        rss = scale_by_power_of_two(fit.rss, -2 * y_exponent)
+        cov = _eiv_covariance(lead, trace, rss, layout)
+        cov = scale_by_power_of_two(cov, 2 * (y_exponent - u_exponent))
+        yield start, _with_covariance(fit, cov)
+
+
+def iter_calibrated_fit_rows(
+    spectra,
+    layout: LocalModelLayout,
+    method: str,
+    *,
+    backend: str = "auto",
+    return_cov: bool = False,
+):
+    """:func:`lrmfrf.local_models.iter_local_fit_rows` (all output rows of a
+    chunk solved together) with the variance of route ``method``.
+
+    Yields
+    ------
+    start : int
+    fits : list of LocalModelFit
+        One per output row, as :func:`iter_calibrated_fits` of that row.
+    """
+    if method not in ("lemma2", "eiv"):
+        raise ValueError(
+            f"`method` {method!r} does not stream; use 'lemma2' or 'eiv', or "
+            "calibrated_local_fit on the whole fit."
+        )
+    chunks = iter_local_fit_rows(spectra, layout, backend=backend,
+                                 return_cov=return_cov)
+    if _keeps_lemma2(method, layout):
+        yield from chunks
+        return
+    n_y = spectra.outputs.shape[1]
+    backend = resolve_backend(backend, spectra.n_slow // 2 + 1, layout.n_params)
+    # the normalisation of iter_local_fit_rows, row by row
+    u_exponent = power_of_two_exponent(spectra.inputs)
+    y_exponents = [power_of_two_exponent(spectra.outputs[:, o]) for o in range(n_y)]
+    for start, fits in chunks:
+        stop = start + fits[0].slow_bins.size
+        U, Y, bins = spectra.window_spectra(start, stop, layout.half_window,
+                                            list(range(n_y)))
+        U = scale_by_power_of_two(U, -u_exponent)
+        out = []
+        for o, (fit, y_exponent) in enumerate(zip(fits, y_exponents, strict=True)):
+            Y_o = scale_by_power_of_two(Y[:, o], -y_exponent)
+            lead, trace = eiv_terms(U, Y_o, layout, fit.theta, bins,
+                                    backend=backend)
+            rss = scale_by_power_of_two(fit.rss, -2 * y_exponent)
+            cov = _eiv_covariance(lead, trace, rss, layout)
+            cov = scale_by_power_of_two(cov, 2 * (y_exponent - u_exponent))
+            out.append(_with_covariance(fit, cov))
+        del U, Y
+        yield start, out
 
 
 def calibrated_local_fit(U, Y, layout: LocalModelLayout, local_fit, method: str):
@@ -384,10 +614,14 @@ def calibrated_local_fit(U, Y, layout: LocalModelLayout, local_fit, method: str)
         ``system_var`` and ``system_cov`` (when present) replaced. The noise
         variance and the parameters are unchanged.
     """
-    if method == "lemma2" or layout.dof <= 0:
-        return local_fit
-    if method == "eiv" and layout.den_degree == 0:
-        return local_fit  # e(x) = 1: the sandwich is Lemma 2 (LPM)
+    if _keeps_lemma2(method, layout):
+        return local_fit  # (eiv with e(x) = 1: the sandwich is Lemma 2, LPM)
+    if method == "eiv":  # compiled (numba) where available
+        lead, trace = eiv_terms(U, Y, layout, local_fit.theta,
+                                local_fit.slow_bins)
+        return _with_covariance(
+            local_fit, _eiv_covariance(lead, trace, local_fit.rss, layout)
+        )
     terms = variance_terms(U, Y, layout, local_fit.theta, local_fit.slow_bins,
                            with_hc=method in ("hc", "eiv_dof"))
     cov = band_covariance(terms, layout, method, slow_bins=local_fit.slow_bins,
@@ -398,4 +632,45 @@ def calibrated_local_fit(U, Y, layout: LocalModelLayout, local_fit, method: str)
         local_fit,
         system_var=var,
         system_cov=None if local_fit.system_cov is None else cov,
+    )
+
+
+def calibrated_refined_fit(U, Y, layout: LocalModelLayout, closed_fit, refined_fit,
+                           method: str):
+    """A refined fit's linearised covariance with the ``"eiv"`` noise level.
+
+    The refined (SK/LM) estimate keeps the shape of its linearised
+    covariance (at the final estimate), but its noise variance ``J / q`` is
+    low: the refined fit absorbs part of the noise (about 0.66x the
+    Monte-Carlo std after LM). With ``method="eiv"`` the covariance is scaled
+    per window by ``sigma^2 / noise_var``, ``sigma^2 = ||r||^2 / sum_r
+    |e(x_r)|^2 (1 - h_r)`` of the closed form on the same window (the noise
+    estimate of the ``"eiv"`` route, see :func:`eiv_terms`); the other
+    routes leave the refined fit as it is.
+
+    Parameters
+    ----------
+    U, Y : ndarray
+        The (normalised) spectra of the fit.
+    layout : LocalModelLayout
+    closed_fit, refined_fit : LocalModelFit
+        The closed form and its refinement on the same windows.
+    method : str
+
+    Returns
+    -------
+    LocalModelFit
+        ``refined_fit`` itself, or a copy with ``system_var`` and
+        ``system_cov`` scaled.
+    """
+    if method != "eiv" or _keeps_lemma2(method, layout):
+        return refined_fit
+    _, trace = eiv_terms(U, Y, layout, closed_fit.theta, closed_fit.slow_bins)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        factor = closed_fit.rss / trace / refined_fit.noise_var
+    cov = refined_fit.system_cov
+    return replace(
+        refined_fit,
+        system_var=refined_fit.system_var * factor[:, None],
+        system_cov=None if cov is None else cov * factor[:, None, None],
     )

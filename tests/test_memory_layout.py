@@ -32,6 +32,7 @@ from lrmfrf.local_models import (
 )
 from lrmfrf.refinement import refine_local_models
 from lrmfrf.signals import multisine
+from lrmfrf.uncertainty import calibrated_local_fit, calibrated_refined_fit
 from lrmfrf.windows import LocalModelLayout, local_regressor
 
 RTOL = 1e-12
@@ -86,8 +87,12 @@ def eager_reference(est, u, y, F=3):
     P, n_u, N = u.shape
     layout = est.layout_
     U = dft(u).reshape(P, n_u * N)
-    fits = [fit_local_models(U, dft(y[:, o]), layout, return_cov=True)
-            for o in range(y.shape[1])]
+    # the closed form with the std route of the estimator (lrmfrf.uncertainty)
+    fits = [calibrated_local_fit(
+        U, dft(y[:, o]), layout,
+        fit_local_models(U, dft(y[:, o]), layout, return_cov=True),
+        getattr(est, "std_method", "lemma2"),
+    ) for o in range(y.shape[1])]
     frf = np.array([[one_sided_fast_grid(fit.system[:, i * F:(i + 1) * F], N, F,
                                          conj=True) for i in range(n_u)]
                     for fit in fits])
@@ -269,6 +274,9 @@ def test_refinement_runs_from_the_new_representation():
         U, Y, est.layout_, closed, sk_iterations=3, lm_iterations=0, tol=1e-6,
         guard=0.5, jump=5.0, keep_best=True, chunk_size=None, verbose=False,
     ).local_fit
+    # the default std route scales the refined variance to the eiv noise level
+    refined = calibrated_refined_fit(U, Y, est.layout_, closed, refined,
+                                     est.std_method)
     assert_same_fit(est.local_fit_, refined)
     assert_close(est.frf_, one_sided_fast_grid(refined.system, u.size, 3, conj=True))
     assert_close(est.noise_variance_, refined.noise_var)

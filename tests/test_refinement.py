@@ -187,7 +187,11 @@ def test_refined_std_is_linearised_at_the_final_estimate(stage_data, lm):
     d = stage_data
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        est = LRMBeyondNyquist(sk_iterations=4, lm_iterations=lm).fit(d["u"], d["y"], F)
+        # std_method="lemma2": the refinement's own noise level J_LS / q (the
+        # default "eiv" rescales it per window, test_uncertainty.py::
+        # test_refined_fits_take_the_eiv_noise_level)
+        est = LRMBeyondNyquist(sk_iterations=4, lm_iterations=lm,
+                               std_method="lemma2").fit(d["u"], d["y"], F)
     layout = est.layout_
     bins = np.array([7, 64, 150])
     A, b = local_regressor(d["U"], d["Y"], bins, layout)

@@ -96,7 +96,7 @@ def test_eiv_is_lemma2_without_denominator(record):
 
 def test_std_method_options(record):
     """Every route gives a finite, positive std on the same bins and the same
-    FRF; frf_cov_ keeps frf_std_ on its diagonal; lemma2 is the old value."""
+    FRF; frf_cov_ keeps frf_std_ on its diagonal; the default is eiv."""
     u, y = record
     ref = LRMBeyondNyquist(std_method="lemma2").fit(u, y, 3)
     for method in STD_METHODS:
@@ -107,9 +107,9 @@ def test_std_method_options(record):
         np.testing.assert_allclose(est.frf_std_**2, np.real(est.frf_cov_[0, 0, 0]),
                                    rtol=1e-12)
     default = LRMBeyondNyquist().fit(u, y, 3)
-    assert default.std_method == "lemma2"  # eiv is opt-in until it is compiled
-    np.testing.assert_array_equal(default.frf_std_, ref.frf_std_)
+    assert default.std_method == "eiv"  # compiled and streamed: the default
     eiv = LRMBeyondNyquist(std_method="eiv").fit(u, y, 3)
+    np.testing.assert_array_equal(default.frf_std_, eiv.frf_std_)
     ratio = np.median(eiv.frf_std_ / ref.frf_std_)
     assert 1.03 < ratio < 1.4  # Lemma 2 is low: the point of the eiv route
 
@@ -121,13 +121,25 @@ def test_bad_std_method_names_the_choices(record):
 
 
 @pytest.mark.filterwarnings("ignore::sklearn.exceptions.ConvergenceWarning")
-def test_refined_fits_keep_their_linearised_variance(record):
-    """The route applies to the closed form only: after SK the std is the
-    refinement's own, whatever std_method says."""
+def test_refined_fits_take_the_eiv_noise_level(record):
+    """After SK the std keeps the refinement's linearised shape; with
+    std_method="eiv" (the default) it is scaled per window by the closed
+    form's eiv noise variance over the refinement's own (which the refined
+    fit lowers), with "lemma2" it is the refinement's own."""
     u, y = record
-    a = LRMBeyondNyquist(sk_iterations=3, std_method="eiv").fit(u, y, 3)
+    a = LRMBeyondNyquist(sk_iterations=3).fit(u, y, 3)
     b = LRMBeyondNyquist(sk_iterations=3, std_method="lemma2").fit(u, y, 3)
-    np.testing.assert_array_equal(a.frf_std_, b.frf_std_)
+    np.testing.assert_array_equal(a.frf_, b.frf_)
+    layout = a.layout_
+    U, Y = dft(u)[None], dft(y)[None]
+    closed = fit_local_models(U, Y, layout, return_cov=True)
+    terms = variance_terms(U, Y, layout, closed.theta, closed.slow_bins,
+                           with_hc=False)
+    factor = terms.rss / terms.eiv_trace / b.noise_variance_  # per window
+    np.testing.assert_allclose(a.local_fit_.system_var,
+                               b.local_fit_.system_var * factor[:, None],
+                               rtol=1e-7)
+    assert np.median(factor) > 1.0  # SK 3 lowers the residual (1.03x here)
 
 
 def test_calibrated_fit_leaves_invalid_windows_nan(record):

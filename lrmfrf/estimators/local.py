@@ -25,16 +25,22 @@ from .._validation import (
 from ..exceptions import IdentifiabilityWarning
 from ..local_models import (
     OneSidedSpectra,
+    _joined_fits,
     fast_grid_targets,
     fit_local_models,
-    fit_one_sided,
-    iter_local_fit_rows,
+    half_slow_bins,
     rescale_local_fit,
     scale_by_power_of_two,
 )
 from ..refinement import pool_summaries, refine_local_models, result_summary
 from ..solvers import resolve_backend
-from ..uncertainty import DEFAULT_STD_METHOD, calibrated_local_fit, check_std_method
+from ..uncertainty import (
+    DEFAULT_STD_METHOD,
+    calibrated_local_fit,
+    calibrated_refined_fit,
+    check_std_method,
+    iter_calibrated_fit_rows,
+)
 from ..windows import LocalModelLayout
 from ._base import _BaseFRFEstimator, _normalise_in_place
 
@@ -175,8 +181,8 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         refines = self._refines(params)
         std_method = params.get("std_method", "lemma2")
         # refinement and the std routes of lrmfrf.uncertainty other than
-        # Lemma 2 need the whole per-window fit: not streamed
-        whole = refines or std_method != "lemma2"
+        # Lemma 2 and eiv need the whole per-window fit: not streamed
+        whole = refines or std_method not in ("lemma2", "eiv")
         if whole:
             U = spectra.full_inputs()  # (P, n_u N): the F n_u bands
             self._refined_rows = []  # refinement summaries, one per output row
@@ -186,9 +192,11 @@ class _LocalModelEstimator(_BaseFRFEstimator):
                 local_fit = fit_local_models(
                     U, Y_o, layout, return_cov=True, backend=backend
                 )
-                if refines:  # refined fits keep their linearised variance
+                if refines:  # linearised variance, at the eiv noise level
                     fit = self._refine(U, Y_o, layout, local_fit, params,
                                        y_exponent)
+                    fit = calibrated_refined_fit(U, Y_o, layout, local_fit, fit,
+                                                 std_method)
                 else:  # closed form: the std route (lrmfrf.uncertainty)
                     fit = calibrated_local_fit(U, Y_o, layout, local_fit,
                                                std_method)
@@ -196,8 +204,8 @@ class _LocalModelEstimator(_BaseFRFEstimator):
             del U, self._refined_rows
             chunks = [(0, fits)]
         else:  # streamed, all output rows at once: no per-window parameters kept
-            chunks = iter_local_fit_rows(
-                spectra, layout, return_cov=True, backend=backend
+            chunks = iter_calibrated_fit_rows(
+                spectra, layout, std_method, return_cov=True, backend=backend
             )
         self._set_fitted(chunks, layout, N, M, F, P, n_y, sample_time,
                          u_exponent, y_exponent)
@@ -207,7 +215,7 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         else:
             self._local_fit_cache_ = None
             self._local_fit_source_ = _LocalFitSource(
-                spectra, layout, u_exponent, y_exponent, backend
+                spectra, layout, u_exponent, y_exponent, backend, std_method
             )
         return self
 
@@ -335,19 +343,22 @@ class LRMBeyondNyquist(_LocalModelEstimator):
     verbose : bool, default=False
         Show a progress bar over the chunks of windows during refinement
         (long records; needs tqdm).
-    std_method : {"lemma2", "eiv", "hc", "eiv_pooled"}, default="lemma2"
+    std_method : {"eiv", "lemma2", "hc", "eiv_pooled", "eiv_dof"}, default="eiv"
         How ``frf_std_`` and ``frf_cov_`` of the closed form are computed
         (:mod:`lrmfrf.uncertainty`, ``docs/method.md`` section 5).
-        ``"lemma2"``: the paper's eq. (Variance) (about 0.76-0.91x the
-        Monte-Carlo std on random stages); ``"eiv"``: the errors-in-variables
-        sandwich, whose equation noise is the output noise times the local
-        denominator, with the noise variance from the residual over its
-        expected size (about 1.0x). ``"eiv"`` is computed in numpy on the
-        whole per-window fit: about 2x the time of a short fit and far more
-        on long records (not streamed in bounded memory), so it is opt-in
-        until it runs in the compiled kernel. ``"hc"``, ``"eiv_pooled"``: the
-        other routes studied. Refined fits (``sk_iterations``,
-        ``lm_iterations``) keep their linearised variance.
+        ``"eiv"``: the errors-in-variables sandwich, whose equation noise is
+        the output noise times the local denominator, with the noise variance
+        from the residual over its expected size (about 1.0x the Monte-Carlo
+        std on random stages); compiled (numba) and streamed chunk by chunk
+        like the closed form, at about 2-3x its time. ``"lemma2"``: the
+        paper's eq. (Variance) (about 0.76-0.91x), the earlier default and
+        the fastest. ``"hc"``, ``"eiv_pooled"``, ``"eiv_dof"``: the other
+        routes studied (numpy, on the whole per-window fit). Refined fits
+        (``sk_iterations``, ``lm_iterations``) keep the shape of their
+        linearised variance; with ``"eiv"`` it is scaled to the closed form's
+        errors-in-variables noise variance of the same window
+        (:func:`lrmfrf.uncertainty.calibrated_refined_fit`), with the other
+        routes it is the refinement's own.
 
     Attributes
     ----------
@@ -363,10 +374,11 @@ class LRMBeyondNyquist(_LocalModelEstimator):
         ``F`` bands with one denominator and one transient per experiment.
     frf_std_ : ndarray of shape (N//2+1,) or (n_y, n_u, N//2+1)
         Standard deviation of ``frf_``, ``sqrt(E|G_hat - G|^2)``, from the
-        route ``std_method`` (Lemma 2 with ``std_method="lemma2"``).
+        route ``std_method`` (the errors-in-variables sandwich by default,
+        Lemma 2 with ``std_method="lemma2"``).
     frf_cov_ : ndarray of shape (n_y, n_u, n_u, N//2+1), complex
         Always 4-D: ``E[dG_oi conj(dG_oj)]`` between the entries of one output
-        row at each fast bin (Lemma 2 per output row); ``frf_std_ ==
+        row at each fast bin (route ``std_method`` per output row); ``frf_std_ ==
         sqrt(real(diagonal))``. Cross-band and cross-output covariances are
         not kept.
     valid_ : ndarray of shape (N//2+1,) or (n_y, n_u, N//2+1), bool
@@ -718,18 +730,22 @@ class _LocalFitSource:
     u_exponent: int
     y_exponent: int
     backend: str
+    std_method: str = "lemma2"
 
     def compute(self):
         """The fit's ``local_fit_``: a LocalModelFit, or a list per output row."""
         n_y = self.spectra.outputs.shape[1]
+        bins = half_slow_bins(self.spectra.n_slow)
+        rows = [[] for _ in range(n_y)]
+        for _, chunk in iter_calibrated_fit_rows(
+            self.spectra, self.layout, self.std_method, return_cov=True,
+            backend=self.backend,
+        ):
+            for o, fit in enumerate(chunk):
+                rows[o].append(fit)
         fits = [
-            rescale_local_fit(
-                fit_one_sided(
-                    self.spectra, self.layout, output=o, return_cov=True,
-                    backend=self.backend,
-                ),
-                self.u_exponent, self.y_exponent,
-            )
-            for o in range(n_y)
+            rescale_local_fit(_joined_fits(parts, bins), self.u_exponent,
+                              self.y_exponent)
+            for parts in rows
         ]
         return fits[0] if n_y == 1 and self.layout.n_inputs == 1 else fits

@@ -772,9 +772,10 @@ class LRMBeyondNyquistCV(_LocalModelCV):
         and ``noise_variance_`` are the regions' blended values (the std
         blended like the FRF, i.e. as if the two fits were fully correlated:
         an upper bound; the covariance blended and rescaled to that std; a
-        bin is valid where every fit with weight there is), and ``predict``/``to_frd`` use them; the other
-        attributes (``layout_``, ``local_fit_``, ``dof_``, ...) stay those of
-        the global ``best_estimator_``.
+        bin is valid where every fit with weight there is), and
+        ``predict``/``to_frd`` use them; the other attributes (``layout_``,
+        ``local_fit_``, ``dof_``, ...) stay those of the global
+        ``best_estimator_``.
     band_params_ : list of dict
         With ``per_band=True``: the setting chosen in each region.
     band_bounds_ : ndarray of int, shape (R+1,)
