@@ -16,6 +16,16 @@ one step of iterative refinement on the weighted residual (as
 :func:`lrmfrf.refinement._weighted_solve`), the output-error cost and the
 guard. The pole guard counts roots in a disk with the Schur-Cohn recursion
 (:func:`_root_in_unit_disk`) instead of eigenvalues.
+
+Guarded LM (:func:`_lm_phase`) damps in the layout basis, as numpy does. Its
+Gauss-Newton model (:func:`_lm_model`) is formed there directly: with the
+layout moment tables (monomial columns, ``moment_tables`` of ``weights @
+S^T``) the moments of ``W S_ab`` give ``J^H J`` in that basis, so no change
+of basis ``S H S^T`` is formed; ``J^H res`` is the adjoint with the layout
+columns. The model is rebuilt only where a lane moved, from the residual kept
+at the estimate (the accepted trial's), and each iteration then costs one
+damped Cholesky solve (:func:`_lm_step`), one residual pass for the trial
+cost (:func:`_oe_cost`) and the guard.
 """
 
 from __future__ import annotations

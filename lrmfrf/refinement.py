@@ -281,8 +281,9 @@ def refine_local_models(
         the window moments reweighted per iteration, no regressor formed);
         ``"numpy"``: array operations on the regressors of chunks of windows.
         ``"auto"`` chooses as :func:`lrmfrf.solvers.resolve_backend` (SK and
-        LM alike; the compiled LM builds ``J^H J`` from the moments too, with
-        the denominator pair series from ``yhat``). Both give
+        LM alike; the compiled LM builds ``J^H J`` from the moments too, in the
+        layout basis where it damps, with the denominator pair series from
+        ``yhat``). Both give
         the same results up to round-off, except on windows where a guard
         decision sits on its threshold.
 
