@@ -16,6 +16,16 @@ one step of iterative refinement on the weighted residual (as
 :func:`lrmfrf.refinement._weighted_solve`), the output-error cost and the
 guard. The pole guard counts roots in a disk with the Schur-Cohn recursion
 (:func:`_root_in_unit_disk`) instead of eigenvalues.
+
+Guarded LM (:func:`_lm_phase`) damps in the layout basis, as numpy does. Its
+Gauss-Newton model (:func:`_lm_model`) is formed there directly: with the
+layout moment tables (monomial columns, ``moment_tables`` of ``weights @
+S^T``) the moments of ``W S_ab`` give ``J^H J`` in that basis, so no change
+of basis ``S H S^T`` is formed; ``J^H res`` is the adjoint with the layout
+columns. The model is rebuilt only where a lane moved, from the residual kept
+at the estimate (the accepted trial's), and each iteration then costs one
+damped Cholesky solve (:func:`_lm_step`), one residual pass for the trial
+cost (:func:`_oe_cost`) and the guard.
 """
 
 from __future__ import annotations
@@ -121,6 +131,8 @@ def _sk_scratch_py(F, P, L, p, n_moments, n_centre, n_pairs, n_den):
         np.empty((2, LANES), np.bool_),
         np.empty((p * (p + 1) // 2, LANES), f64),
         np.empty((p * (p + 1) // 2, LANES), f64),
+        np.empty((P, L, LANES), f64), np.empty((P, L, LANES), f64),
+        np.empty((L, LANES), f64), np.empty((L, LANES), f64),
     )
 
 
@@ -203,7 +215,7 @@ def _sk_range_py(
     rhs_ptr, rhs_mom, rhs_coef, n_moments, band_int, den_int, den_map,
     system_factor, guard_radius, iterations, lm_iterations, tol, keep_best,
     exact_tol, theta_out, cost_out, flags_out, cvar_out, history, n_run,
-    lm_history, n_run_lm, s_ptr, s_col, s_val, first_group, stop_group,
+    lm_history, n_run_lm, lay, first_group, stop_group,
 ):
     """SK on the lane groups ``first_group..stop_group-1``."""
     P = U.shape[0]
@@ -219,7 +231,7 @@ def _sk_range_py(
             ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef, band_int, den_int,
             den_map, system_factor, guard_radius, iterations, lm_iterations,
             tol, keep_best, exact_tol, theta_out, cost_out, flags_out, cvar_out,
-            history, n_run, lm_history, n_run_lm, s_ptr, s_col, s_val, group, s,
+            history, n_run, lm_history, n_run_lm, lay, group, s,
         )
 
 
@@ -230,13 +242,13 @@ def _sk_group_py(
     rhs_ptr, rhs_mom, rhs_coef, band_int, den_int, den_map,
     system_factor, guard_radius, iterations, lm_iterations, tol, keep_best,
     exact_tol, theta_out, cost_out, flags_out, cvar_out, history, n_run,
-    lm_history, n_run_lm, s_ptr, s_col, s_val, group, s,
+    lm_history, n_run_lm, lay, group, s,
 ):
     """SK for the windows ``bins[group*LANES:(group+1)*LANES]``."""
     (sr, si, Sar, Sai, Tr, Ti, Er, Ei, Or, Oi, mr, mi, Hr, Hi, gr, gi, xr, xi,
      dr, di, scale2, polyr, polyi, resr, resi, Wt, er, ei, etr, eti, thr, thi,
      bsr, bsi, ok, k, lane, flag, tr, ti, work, hr, hi, Hsr, Hsi, gsr, gsi,
-     str_, sti, ds, lm_lane, need, Gtr, Gti) = s
+     str_, sti, ds, lm_lane, need, Gtr, Gti, rbr, rbi, ebr, ebi) = s
     # lane[0..5]: trajectory cost, best cost, SK cost, trial cost, trial rss,
     # |b|^2; flag[0..3]: active, converged, guarded, exact
     L, p = weights.shape
@@ -381,13 +393,11 @@ def _sk_group_py(
             sr, si, hr, hi, Sar, Sai, Tr, Ti, Er, Ei, Or, Oi, mr, mi, Hr, Hi,
             gr, gi, xr, xi, scale2, polyr, polyi, resr, resi, Wt, etr, eti,
             bsr, bsi, ok, lane, flag, work, Hsr, Hsi, gsr, gsi, str_, sti, ds,
-            lm_lane, need, Gtr, Gti, weights, col_base, data_index, F, q_basis,
-            pair_kind,
-            pair_a, pair_b, pair_nd, pair_off, ent_ptr, ent_mom, ent_coef,
-            ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef, band_int, den_int,
-            den_map, system_factor, guard_radius, start_system, jump_limit,
-            radius, lm_iterations, tol, lm_history, group, first, count, s_ptr,
-            s_col, s_val,
+            lm_lane, need, Gtr, Gti, rbr, rbi, ebr, ebi, weights, col_base,
+            data_index, F, q_basis, pair_kind, pair_a, pair_b, pair_nd,
+            pair_off, band_int, den_int, den_map, system_factor, guard_radius,
+            start_system, jump_limit, radius, lm_iterations, tol, lm_history,
+            group, first, count, lay,
         )
     # Lemma 2 on the problem reweighted by the final estimate (LM: J^H J, the
     # denominator columns built from yhat)
@@ -426,16 +436,11 @@ def _sk_group_py(
 
 def _hat_series_py(sr, si, resr, resi, er, ei, F, hr, hi, pair_kind, pair_a,
                    pair_b, Sar, Sai):
-    """Denominator base ``-yhat = -(Y - res / e)`` in ``hr/hi[F]`` (the other
-    bases copied from ``sr/si``) and the pair series that involve it."""
+    """Denominator base ``-yhat = -(Y - res / e)`` in ``hr/hi[F]`` and the
+    pair series that involve it (the other bases ``hr/hi[:F]`` are the
+    window's inputs, copied from ``sr/si`` once by :func:`_lm_phase`)."""
     P = sr.shape[1]
     L = sr.shape[2]
-    for f in range(F):
-        for q in range(P):
-            for r in range(L):
-                for w in range(LANES):
-                    hr[f, q, r, w] = sr[f, q, r, w]
-                    hi[f, q, r, w] = si[f, q, r, w]
     for q in range(P):
         for r in range(L):
             for w in range(LANES):
@@ -453,53 +458,158 @@ def _hat_series_py(sr, si, resr, resi, er, ei, F, hr, hi, pair_kind, pair_a,
             _compiled._pair_series(hr, hi, kind, a, b, Sar[t], Sai[t])
 
 
-def _gram_to_layout_py(Hr, Hi, s_ptr, s_col, s_val, Gr, Gi):
-    """Packed lower ``S H S^T`` of every lane into ``Gr/Gi`` (``S`` real,
-    sparse rows ``s_ptr/s_col/s_val``; ``H`` packed lower Hermitian): the
-    Gram matrix in the layout (monomial) basis, where numpy's LM damps."""
-    p = s_ptr.shape[0] - 1
-    for a in range(p):
-        ra = a * (a + 1) // 2
-        for b in range(a + 1):
+def _lm_model_py(
+    sr, si, hr, hi, rbr, rbi, ebr, ebi, Sar, Sai, Tr, Ti, Er, Ei, Or, Oi, mr, mi,
+    Gr, Gi, gr, gi, polyr, polyi, resr, resi, Wt, F, data_index, q_basis,
+    pair_kind, pair_a, pair_b, pair_nd, pair_off, lay, ds, Hsr, Hsi, gsr, gsi,
+):
+    """The Gauss-Newton model of every lane at the estimate (residual
+    ``rbr/rbi``, denominator ``ebr/ebi``): equilibrated ``J^H J`` (packed
+    lower, ``Hsr/Hsi``), ``J^H res`` (``gsr/gsi``) and the column scale
+    ``ds``, all in the layout basis (docs/method.md, section 7; module
+    docstring of :mod:`lrmfrf.refinement`).
+
+    ``J = -Ahat / e``: the Gram matrix is the row-weighted one (``W = 1 /
+    |e|^2``) of ``Ahat``, whose denominator base is ``-yhat``. It is formed
+    from the moments of ``W S_ab`` with the layout tables ``lay`` (monomial
+    columns), so no change of basis ``S H S^T`` is needed; only the pair
+    series of the denominator base change with the estimate
+    (:func:`_hat_series`), the others are the window's own."""
+    (lweights, lcol_base, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const,
+     rhs_ptr, rhs_mom, rhs_coef) = lay[:10]
+    P = rbr.shape[0]
+    L = rbr.shape[1]
+    p = ds.shape[0]
+    for r in range(L):
+        for w in range(LANES):
+            Wt[r, w] = 1.0 / (ebr[r, w] ** 2 + ebi[r, w] ** 2)
+    _hat_series(sr, si, rbr, rbi, ebr, ebi, F, hr, hi, pair_kind, pair_a,
+                pair_b, Sar, Sai)
+    _weighted_gram(
+        Sar, Sai, Wt, Tr, Ti, q_basis, pair_off, pair_nd, Er, Ei, Or, Oi,
+        mr, mi, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const, rhs_ptr,
+        rhs_mom, rhs_coef, Gr, Gi, gr, gi,
+    )
+    for q in range(P):
+        for r in range(L):
             for w in range(LANES):
-                Gr[ra + b, w] = 0.0
-                Gi[ra + b, w] = 0.0
-            for za in range(s_ptr[a], s_ptr[a + 1]):
-                i = s_col[za]
-                ca = s_val[za]
-                for zb in range(s_ptr[b], s_ptr[b + 1]):
-                    j = s_col[zb]
-                    c = ca * s_val[zb]
-                    if i >= j:
-                        e = i * (i + 1) // 2 + j
-                        for w in range(LANES):
-                            Gr[ra + b, w] += c * Hr[e, w]
-                            Gi[ra + b, w] += c * Hi[e, w]
-                    else:
-                        e = j * (j + 1) // 2 + i
-                        for w in range(LANES):
-                            Gr[ra + b, w] += c * Hr[e, w]
-                            Gi[ra + b, w] -= c * Hi[e, w]
+                resr[q, r, w] = rbr[q, r, w] * Wt[r, w]
+                resi[q, r, w] = rbi[q, r, w] * Wt[r, w]
+    _compiled._adjoint(hr, hi, resr, resi, lweights, lcol_base, data_index, F,
+                       polyr, polyi, gr, gi)
+    # equilibrate: unit diagonal; J^H r = -Ahat^H W res
+    for i in range(p):
+        ii = i * (i + 1) // 2 + i
+        for w in range(LANES):
+            d = Gr[ii, w]
+            d = np.sqrt(d) if d > 0.0 else 0.0
+            ds[i, w] = d if d > 0.0 else 1.0
+    for i in range(p):
+        ri = i * (i + 1) // 2
+        for j in range(i + 1):
+            for w in range(LANES):
+                c = 1.0 / (ds[i, w] * ds[j, w])
+                Hsr[ri + j, w] = Gr[ri + j, w] * c
+                Hsi[ri + j, w] = Gi[ri + j, w] * c
+        for w in range(LANES):
+            gsr[i, w] = -gr[i, w] / ds[i, w]
+            gsi[i, w] = -gi[i, w] / ds[i, w]
+
+
+def _lm_step_py(Hsr, Hsi, gsr, gsi, ds, damping, bsr, bsi, s_ptr, s_col, s_val,
+                Hr, Hi, gr, gi, scale2, ok, xr, xi):
+    """Trial estimate ``x = theta + S^T (z / ds)`` of every lane, ``z`` the
+    solution of the damped equilibrated system ``(Hs + lambda I) z = -gs``
+    (Marquardt's damping on the unit diagonal, layout basis; ``S`` real with
+    sparse rows ``s_ptr/s_col/s_val`` maps a layout step to the internal
+    basis). ``ok[w]`` False where the Cholesky factorisation failed."""
+    p = ds.shape[0]
+    for e in range(Hsr.shape[0]):
+        for w in range(LANES):
+            Hr[e, w] = Hsr[e, w]
+            Hi[e, w] = Hsi[e, w]
+    for i in range(p):
+        ii = i * (i + 1) // 2 + i
+        for w in range(LANES):
+            Hr[ii, w] += damping[w]
+            gr[i, w] = -gsr[i, w]
+            gi[i, w] = -gsi[i, w]
+    _compiled._cholesky(Hr, Hi, scale2, ok, 0.0, p)
+    _compiled._chol_solve(Hr, Hi, gr, gi, xr, xi, p)
+    for i in range(p):  # the layout step, scaled back
+        for w in range(LANES):
+            xr[i, w] /= ds[i, w]
+            xi[i, w] /= ds[i, w]
+    for i in range(p):  # internal step S^T step: gr/gi as work space
+        for w in range(LANES):
+            gr[i, w] = bsr[i, w]
+            gi[i, w] = bsi[i, w]
+    for a in range(p):
+        for z in range(s_ptr[a], s_ptr[a + 1]):
+            c = s_val[z]
+            i = s_col[z]
+            for w in range(LANES):
+                gr[i, w] += c * xr[a, w]
+                gi[i, w] += c * xi[a, w]
+    for i in range(p):
+        for w in range(LANES):
+            xr[i, w] = gr[i, w]
+            xi[i, w] = gi[i, w]
+
+
+def _oe_cost_py(resr, resi, er, ei, out):
+    """Output-error cost ``J_LS = sum_q sum_r |res / e|^2`` of every lane
+    (eq. CostFunction; summed in the order of the numpy path)."""
+    P = resr.shape[0]
+    L = resr.shape[1]
+    for w in range(LANES):
+        out[w] = 0.0
+    for q in range(P):
+        for r in range(L):
+            for w in range(LANES):
+                out[w] += (resr[q, r, w] ** 2 + resi[q, r, w] ** 2) / (
+                    er[r, w] ** 2 + ei[r, w] ** 2
+                )
+
+
+def _keep_accepted_py(accepted, resr, resi, er, ei, rbr, rbi, ebr, ebi):
+    """Residual and denominator of the lanes whose trial was accepted become
+    those at the estimate (the next model is built from them)."""
+    P = resr.shape[0]
+    L = resr.shape[1]
+    for q in range(P):
+        for r in range(L):
+            for w in range(LANES):
+                if accepted[w]:
+                    rbr[q, r, w] = resr[q, r, w]
+                    rbi[q, r, w] = resi[q, r, w]
+    for r in range(L):
+        for w in range(LANES):
+            if accepted[w]:
+                ebr[r, w] = er[r, w]
+                ebi[r, w] = ei[r, w]
 
 
 def _lm_phase_py(
     sr, si, hr, hi, Sar, Sai, Tr, Ti, Er, Ei, Or, Oi, mr, mi, Hr, Hi,
     gr, gi, xr, xi, scale2, polyr, polyi, resr, resi, Wt, etr, eti,
     bsr, bsi, ok, lane, flag, work, Hsr, Hsi, gsr, gsi, str_, sti, ds,
-    lm_lane, need, Gtr, Gti, weights, col_base, data_index, F, q_basis,
-    pair_kind,
-    pair_a, pair_b, pair_nd, pair_off, ent_ptr, ent_mom, ent_coef,
-    ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef, band_int, den_int,
-    den_map, system_factor, guard_radius, start_system, jump_limit,
-    radius, iterations, tol, lm_history, group, first, count, s_ptr, s_col,
-    s_val,
+    lm_lane, need, Gtr, Gti, rbr, rbi, ebr, ebi, weights, col_base,
+    data_index, F, q_basis, pair_kind, pair_a, pair_b, pair_nd, pair_off,
+    band_int, den_int, den_map, system_factor, guard_radius, start_system,
+    jump_limit, radius, iterations, tol, lm_history, group, first, count, lay,
 ):
     """Guarded LM of :func:`lrmfrf.refinement._levenberg_marquardt` from the
     estimate in ``bsr/bsi`` (cost ``lane[1]``); returns the iterations run.
     ``lm_lane[0..2]``: damping, start cost, trial cost; ``need[0]``: the
-    Gauss-Newton model must be rebuilt, ``need[1]``: spare. The model is
-    damped in the layout basis (``theta_internal = theta_layout S``), as numpy
-    does: Marquardt's damping is not invariant to a change of basis."""
+    Gauss-Newton model must be rebuilt, ``need[1]``: the trial was accepted.
+    The model is damped in the layout basis (``theta_internal = theta_layout
+    S``), as numpy does: Marquardt's damping is not invariant to a change of
+    basis. Per iteration: the model where some lane moved
+    (:func:`_lm_model`, from the residual kept at the estimate), the damped
+    solve (:func:`_lm_step`), one residual pass for the trial cost
+    (:func:`_oe_cost`) and the guard of the lanes whose cost decreased."""
+    s_ptr, s_col, s_val = lay[10], lay[11], lay[12]
     L, p = weights.shape
     P = sr.shape[1]
     den = F + P
@@ -512,103 +622,42 @@ def _lm_phase_py(
         for i in range(p):
             str_[i, w] = bsr[i, w]
             sti[i, w] = bsi[i, w]
+    for f in range(F):  # the input bases of Ahat are the window's own
+        for q in range(P):
+            for r in range(L):
+                for w in range(LANES):
+                    hr[f, q, r, w] = sr[f, q, r, w]
+                    hi[f, q, r, w] = si[f, q, r, w]
+    _compiled._residual(sr, si, bsr, bsi, weights, col_base, data_index, F,
+                        polyr, polyi, rbr, rbi)
+    _denominator(polyr, polyi, den, ebr, ebi)
     run = 0
     for it in range(iterations):
         rebuild = False
         for w in range(count):
             rebuild = rebuild or need[0, w]
-        if rebuild:  # equilibrated J^H J, J^H r and the scale at the estimate
-            _compiled._residual(sr, si, bsr, bsi, weights, col_base, data_index,
-                                F, polyr, polyi, resr, resi)
-            _denominator(polyr, polyi, den, etr, eti)
-            for r in range(L):
-                for w in range(LANES):
-                    Wt[r, w] = 1.0 / (etr[r, w] ** 2 + eti[r, w] ** 2)
-            _hat_series(sr, si, resr, resi, etr, eti, F, hr, hi, pair_kind,
-                        pair_a, pair_b, Sar, Sai)
-            _weighted_gram(
-                Sar, Sai, Wt, Tr, Ti, q_basis, pair_off, pair_nd, Er, Ei, Or, Oi,
-                mr, mi, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const, rhs_ptr,
-                rhs_mom, rhs_coef, Hr, Hi, gr, gi,
+        if rebuild:  # lanes without a new estimate get the model they had
+            _lm_model(
+                sr, si, hr, hi, rbr, rbi, ebr, ebi, Sar, Sai, Tr, Ti, Er, Ei,
+                Or, Oi, mr, mi, Gtr, Gti, gr, gi, polyr, polyi, resr, resi, Wt,
+                F, data_index, q_basis, pair_kind, pair_a, pair_b, pair_nd,
+                pair_off, lay, ds, Hsr, Hsi, gsr, gsi,
             )
-            for q in range(P):
-                for r in range(L):
-                    for w in range(LANES):
-                        resr[q, r, w] *= Wt[r, w]
-                        resi[q, r, w] *= Wt[r, w]
-            _compiled._adjoint(hr, hi, resr, resi, weights, col_base, data_index,
-                               F, polyr, polyi, gr, gi)
-            _gram_to_layout(Hr, Hi, s_ptr, s_col, s_val, Gtr, Gti)
-            for w in range(count):
-                if not need[0, w]:
-                    continue
-                for i in range(p):
-                    d = Gtr[i * (i + 1) // 2 + i, w]
-                    d = np.sqrt(d) if d > 0.0 else 0.0
-                    ds[i, w] = d if d > 0.0 else 1.0
-                for i in range(p):
-                    ri = i * (i + 1) // 2
-                    for j in range(i + 1):
-                        c = 1.0 / (ds[i, w] * ds[j, w])
-                        Hsr[ri + j, w] = Gtr[ri + j, w] * c
-                        Hsi[ri + j, w] = Gti[ri + j, w] * c
-                    # J^H r = -Ahat^H W res, in the layout basis: S g
-                    accr = 0.0
-                    acci = 0.0
-                    for z in range(s_ptr[i], s_ptr[i + 1]):
-                        accr += s_val[z] * gr[s_col[z], w]
-                        acci += s_val[z] * gi[s_col[z], w]
-                    gsr[i, w] = -accr / ds[i, w]
-                    gsi[i, w] = -acci / ds[i, w]
         busy = False
         for w in range(count):
             busy = busy or flag[0, w]
         if not busy:
             break
         run = it + 1
-        for e in range(Hsr.shape[0]):
-            for w in range(LANES):
-                Hr[e, w] = Hsr[e, w]
-                Hi[e, w] = Hsi[e, w]
-        for i in range(p):
-            ii = i * (i + 1) // 2 + i
-            for w in range(LANES):
-                Hr[ii, w] += lm_lane[0, w]
-                gr[i, w] = -gsr[i, w]
-                gi[i, w] = -gsi[i, w]
-        _compiled._cholesky(Hr, Hi, scale2, ok, 0.0, p)
-        _compiled._chol_solve(Hr, Hi, gr, gi, xr, xi, p)
-        for i in range(p):  # the layout step, scaled back
-            for w in range(LANES):
-                xr[i, w] /= ds[i, w]
-                xi[i, w] /= ds[i, w]
-        for i in range(p):  # internal step S^T step: gr/gi as work space
-            for w in range(LANES):
-                gr[i, w] = bsr[i, w]
-                gi[i, w] = bsi[i, w]
-        for a in range(p):
-            for z in range(s_ptr[a], s_ptr[a + 1]):
-                c = s_val[z]
-                i = s_col[z]
-                for w in range(LANES):
-                    gr[i, w] += c * xr[a, w]
-                    gi[i, w] += c * xi[a, w]
-        for i in range(p):
-            for w in range(LANES):
-                xr[i, w] = gr[i, w]
-                xi[i, w] = gi[i, w]
+        _lm_step(Hsr, Hsi, gsr, gsi, ds, lm_lane[0], bsr, bsi, s_ptr, s_col,
+                 s_val, Hr, Hi, gr, gi, scale2, ok, xr, xi)
         _compiled._residual(sr, si, xr, xi, weights, col_base, data_index, F,
                             polyr, polyi, resr, resi)
         _denominator(polyr, polyi, den, etr, eti)
-        for w in range(LANES):
-            cost = 0.0
-            for q in range(P):
-                for r in range(L):
-                    cost += (resr[q, r, w] ** 2 + resi[q, r, w] ** 2) / (
-                        etr[r, w] ** 2 + eti[r, w] ** 2
-                    )
-            lm_lane[2, w] = cost
+        _oe_cost(resr, resi, etr, eti, lm_lane[2])
         total = 0.0
+        for w in range(LANES):
+            need[1, w] = False
         for w in range(count):
             need[0, w] = False
             row = first + w
@@ -629,6 +678,7 @@ def _lm_phase_py(
                 if decrease and not hit:
                     change = (lane[1, w] - cost) / lane[1, w]
                     lane[1, w] = cost
+                    need[1, w] = True
                     for i in range(p):
                         bsr[i, w] = xr[i, w]
                         bsi[i, w] = xi[i, w]
@@ -644,6 +694,7 @@ def _lm_phase_py(
                         flag[0, w] = False
                         flag[1, w] = True
             total += lane[1, w]
+        _keep_accepted(need[1], resr, resi, etr, eti, rbr, rbi, ebr, ebi)
         lm_history[group, it] = total
     for later in range(run, iterations):
         if run > 0:
@@ -663,7 +714,10 @@ if AVAILABLE:  # pragma: no branch
     _weighted_gram = njit(**_opts)(_weighted_gram_py)
     _rejected = njit(**_opts)(_rejected_py)
     _hat_series = njit(**_opts)(_hat_series_py)
-    _gram_to_layout = njit(**_opts)(_gram_to_layout_py)
+    _lm_model = njit(**_opts)(_lm_model_py)
+    _lm_step = njit(**_opts)(_lm_step_py)
+    _oe_cost = njit(**_opts)(_oe_cost_py)
+    _keep_accepted = njit(**_opts)(_keep_accepted_py)
     _lm_phase = njit(**_opts)(_lm_phase_py)
     _sk_group = njit(**_opts)(_sk_group_py)
     _sk_range = njit(**_opts)(_sk_range_py)
@@ -697,6 +751,9 @@ def sk_windows(
     exact_tol: float,
     lm_iterations: int = 0,
     from_layout: np.ndarray | None = None,
+    layout_weights: np.ndarray | None = None,
+    layout_col_base: np.ndarray | None = None,
+    layout_tables: dict | None = None,
     n_threads: int | None = None,
 ):
     """Sanathanan-Koerner iterations of every window (compiled, threaded).
@@ -738,6 +795,11 @@ def sk_windows(
     from_layout : ndarray of shape (p, p), optional
         Real ``S`` with ``theta_internal = theta_layout @ S`` (LM damps in the
         layout basis); needed with ``lm_iterations``.
+    layout_weights, layout_col_base, layout_tables : optional
+        Column weights, bases and ``moment_tables(..., weighted=True)`` of the
+        layout basis (``weights @ from_layout.T``): LM forms its ``J^H J`` in
+        that basis from the moments. Default: those of the internal basis
+        (right when ``from_layout`` is the identity).
     n_threads : int, optional
 
     Returns
@@ -788,7 +850,12 @@ def sk_windows(
         float(system_factor), float(guard_radius), int(iterations),
         int(lm_iterations), float(tol), bool(keep_best), float(exact_tol),
         theta_out, cost, flags, cvar, history, n_run, lm_history, n_run_lm,
-        *_sparse_rows(np.eye(p) if from_layout is None else from_layout),
+        _layout_tuple(
+            weights if layout_weights is None else layout_weights,
+            col_base if layout_col_base is None else layout_col_base,
+            t if layout_tables is None else layout_tables,
+            np.eye(p) if from_layout is None else from_layout,
+        ),
     )
     tasks = [
         (start, min(n_groups, start + _GROUPS_PER_TASK))
@@ -811,6 +878,19 @@ def sk_windows(
         theta_out.view(np.complex128)[..., 0], cost, flags[:, 0].copy(),
         flags[:, 1].copy(), cvar.view(np.complex128)[..., 0], sums[:, 0],
         sums[:, 1], lm[:, :n_lm].sum(axis=0),
+    )
+
+
+def _layout_tuple(weights, col_base, tables, from_layout):
+    """What LM needs of the layout basis, as one argument of the kernel:
+    column weights and bases, the Gram and right-hand-side tables, and the
+    sparse rows of ``from_layout``."""
+    t = tables
+    return (
+        np.ascontiguousarray(weights, dtype=np.float64),
+        np.ascontiguousarray(col_base, dtype=np.int64), t["ent_ptr"],
+        t["ent_mom"], t["ent_coef"], t["ent_conj"], t["ent_const"],
+        t["rhs_ptr"], t["rhs_mom"], t["rhs_coef"], *_sparse_rows(from_layout),
     )
 
 

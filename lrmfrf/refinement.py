@@ -281,8 +281,9 @@ def refine_local_models(
         the window moments reweighted per iteration, no regressor formed);
         ``"numpy"``: array operations on the regressors of chunks of windows.
         ``"auto"`` chooses as :func:`lrmfrf.solvers.resolve_backend` (SK and
-        LM alike; the compiled LM builds ``J^H J`` from the moments too, with
-        the denominator pair series from ``yhat``). Both give
+        LM alike; the compiled LM builds ``J^H J`` from the moments too, in the
+        layout basis where it damps, with the denominator pair series from
+        ``yhat``). Both give
         the same results up to round-off, except on windows where a guard
         decision sits on its threshold.
 
@@ -830,6 +831,9 @@ def _refine_compiled(
             guard_radius=guard_radius, iterations=sk_iterations, tol=tol,
             keep_best=keep_best, exact_tol=EXACT_FIT_TOL,
             lm_iterations=lm_iterations, from_layout=sk["from_layout"],
+            layout_weights=sk["layout_weights"],
+            layout_col_base=sk["layout_col_base"],
+            layout_tables=sk["layout_tables"],
         )
     )
     theta = local_fit.theta.copy()
@@ -888,11 +892,43 @@ def _sk_layout(layout: LocalModelLayout) -> dict:
         raise AssertionError("unexpected internal order of the centre columns")
     den_cols = np.arange(p)[layout.den_columns]
     den_int = np.flatnonzero(np.any(T[:, den_cols] != 0, axis=1))
+    S = np.linalg.inv(T)
+    layout_weights, layout_col_base = _layout_columns(weights, col_base, S)
+    layout_tables = _compiled.moment_tables(
+        layout_weights, layout_col_base, nb, P, weighted=True
+    )
+    for key in ("q_basis", "pair_kind", "pair_a", "pair_b", "pair_nd", "pair_off"):
+        if not np.array_equal(layout_tables[key], tables[key]):
+            raise AssertionError("layout and internal pair series differ")
     return {
         "weights": weights, "col_base": col_base, "tables": tables,
-        "to_layout": T, "from_layout": np.linalg.inv(T), "band_int": band_int,
+        "layout_weights": layout_weights, "layout_col_base": layout_col_base,
+        "layout_tables": layout_tables,
+        "to_layout": T, "from_layout": S, "band_int": band_int,
         "den_int": den_int, "den_map": T[np.ix_(den_int, den_cols)],
     }
+
+
+def _layout_columns(weights, col_base, from_layout):
+    """Column weights and bases of the layout basis: column ``j`` is
+    ``sum_i S[j, i]`` times internal column ``i`` (``A_layout = A_int S^T``),
+    the monomial ``x^d`` times one base sequence; the monomial is returned
+    exact (the product ``weights @ S^T`` carries round-off)."""
+    product = weights @ from_layout.T
+    L = weights.shape[0]
+    n = L // 2
+    x = (np.arange(L) - n) / max(n, 1)
+    out = np.empty_like(product)
+    bases = np.empty(product.shape[1], dtype=np.int64)
+    for j in range(product.shape[1]):
+        base = np.unique(col_base[from_layout[j] != 0])
+        errors = [np.max(np.abs(product[:, j] - x**d)) for d in range(L)]
+        d = int(np.argmin(errors))
+        if base.size != 1 or errors[d] > 1e-10:
+            raise AssertionError("a layout column is no monomial of one base")
+        out[:, j] = x**d
+        bases[j] = base[0]
+    return out, bases
 
 
 def _pad_sum(parts, length):
