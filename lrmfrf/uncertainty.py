@@ -51,6 +51,7 @@ finite sample properties", J. Econometrics 29 (1985) (HC2).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 from dataclasses import dataclass, replace
 
@@ -444,7 +445,8 @@ def eiv_terms(
     trace = np.clip(w_sum - hw_trace, q * w_min, q * w_max)
     redo = np.flatnonzero(good & ~ok)
     chunk = qr_chunk_size(layout)
-    with _single_threaded_blas():
+    # (threadpoolctl inspects the loaded libraries on entry: only when needed)
+    with _single_threaded_blas() if redo.size else contextlib.nullcontext():
         for start in range(0, redo.size, chunk):
             part = redo[start : start + chunk]
             terms = _terms_of_chunk(U, Y, layout, theta[part], slow_bins[part],
