@@ -440,17 +440,20 @@ class LRMBeyondNyquist(_LocalModelEstimator):
     (for MIMO data the histories pool the windows of all rows, ``n_guarded_``
     counts them all). After refinement, ``frf_std_`` is linearised at the
     final estimate (SK: Lemma 2 on the reweighted regressor; LM:
-    ``(J^H J)^-1``) with the noise
-    variance ``J_LS / dof_``. Iterative refinement is implemented in
+    ``(J^H J)^-1``), with the noise variance ``J_LS / dof_`` for
+    ``std_method="lemma2"`` and the closed form's errors-in-variables noise
+    variance for the default ``"eiv"``. Iterative refinement is implemented in
     :mod:`lrmfrf.refinement`. On the simulated wafer stage at 45 dB
     (``benchmarks/refinement.py``, 100 runs) SK 30 lowered the mean cost by
     about 84 % and the median FRF error by about 9 %; adding LM 300 lowered
     the cost further (to about 13 %) but fitted noise and raised the median
-    error by 12-15 % over the closed form, so SK alone is recommended. The
-    linearised ``frf_std_`` is 0.87x the Monte-Carlo std after SK (the
-    closed form's Lemma 2: 0.85x; ``std_method="eiv"``: about
-    1.0x) but only about 0.66x after LM: LM's fit absorbs part of the noise,
-    so its residual underestimates it.
+    error by 12-15 % over the closed form, so SK alone is recommended. With
+    the refinement's own noise level (``std_method="lemma2"``) the
+    linearised ``frf_std_`` is about 0.90x the Monte-Carlo std after SK and
+    0.77x after LM (LM's fit absorbs part of the noise, so its residual
+    underestimates it); at the closed form's errors-in-variables noise level
+    (the default) it measured 0.93-0.98x on random stages
+    (``benchmarks/generalisation_std.py --refined``).
 
     References
     ----------
