@@ -15,8 +15,9 @@ def multisine(
     rms: float = 1.0,
     bins=None,
     rng: int | np.random.Generator | None = None,
+    amplitude=None,
 ) -> np.ndarray:
-    """Random-phase multisine with a flat amplitude spectrum (one period).
+    """Random-phase multisine with a flat (or given) amplitude spectrum (one period).
 
     Parameters
     ----------
@@ -31,17 +32,23 @@ def multisine(
         excited, gets a random sign (its phase can only be 0 or pi).
     rng : int, numpy.random.Generator or None
         Seed or generator for the random phases.
+    amplitude : array-like of shape (N//2 + 1,), optional
+        Relative DFT magnitude of each bin ``0..N//2`` (only the excited bins
+        are read; finite, >= 0, not all zero on them); e.g. ``1 / |G(k)|`` of
+        a nominal model, for an output with a flat spectrum. Default: flat.
 
     Returns
     -------
     ndarray of shape (n_samples,)
-        One period; every excited bin has the same DFT magnitude.
+        One period; every excited bin has the same DFT magnitude (or
+        magnitudes proportional to ``amplitude``).
 
     Raises
     ------
     TypeError, ValueError
-        For ``n_samples < 2``, a non-positive ``rms``, or ``bins`` that are not
-        whole numbers in ``1..N//2``.
+        For ``n_samples < 2``, a non-positive ``rms``, ``bins`` that are not
+        whole numbers in ``1..N//2``, or an ``amplitude`` of the wrong shape,
+        negative, not finite or zero on every excited bin.
 
     Examples
     --------
@@ -53,11 +60,14 @@ def multisine(
     N = check_nonnegative_int(n_samples, "n_samples", minimum=2)
     rms = check_positive_float(rms, "rms", allow_none=False)
     bins = np.arange(1, N // 2 + 1) if bins is None else _check_bins(bins, N)
+    scale = None if amplitude is None else _check_amplitude(amplitude, N, bins)
     rng = np.random.default_rng(rng)
     spectrum = np.zeros(N // 2 + 1, dtype=complex)
     spectrum[bins] = np.exp(2j * np.pi * rng.random(bins.size))
     if N % 2 == 0 and bins[-1] == N // 2:
         spectrum[N // 2] = rng.choice([-1.0, 1.0])
+    if amplitude is not None:
+        spectrum *= scale
     u = np.fft.irfft(spectrum, n=N)
     return u * (rms / np.sqrt(np.mean(u**2)))
 
@@ -132,6 +142,28 @@ def orthogonal_multisines(
         spectrum[:, :, N // 2] = np.diag(np.sqrt(n_u) * signs)
     u = np.fft.irfft(spectrum, n=N, axis=-1)
     return u * (rms / np.sqrt(np.mean(u**2)))
+
+
+def _check_amplitude(amplitude, n_samples: int, bins: np.ndarray) -> np.ndarray:
+    values = np.asarray(amplitude)
+    K = n_samples // 2 + 1
+    if values.shape != (K,) or not np.issubdtype(values.dtype, np.number) \
+            or np.iscomplexobj(values):
+        raise ValueError(
+            f"`amplitude` must be a real array of shape ({K},) (one value per bin "
+            f"0..N//2); got shape {values.shape} and dtype {values.dtype}. For a "
+            "complex FRF G pass np.abs(G) or 1 / np.abs(G)."
+        )
+    values = values.astype(float)
+    if not np.all(np.isfinite(values)) or np.any(values < 0):
+        raise ValueError(
+            "`amplitude` must be finite and >= 0; clip it, e.g. "
+            "np.minimum(amplitude, limit)."
+        )
+    if not np.any(values[bins] > 0):
+        raise ValueError("`amplitude` is zero on every excited bin; nothing would be "
+                         "excited.")
+    return values
 
 
 def _check_bins(bins, n_samples: int) -> np.ndarray:

@@ -54,6 +54,7 @@ __all__ = [
     "FeedbackSimulationResult",
     "SimulationResult",
     "frequency_grid",
+    "periodic_state",
     "simulate",
     "simulate_slow_feedback",
     "transient_frf",
@@ -445,6 +446,54 @@ def transient_frf(
     z = _dft_grid(n_samples, one_sided)
     left = C[0] if _is_siso(system) else C
     return _resolvent_response(A, left, start - end, z) * z
+
+
+def periodic_state(
+    system: control.StateSpace | control.TransferFunction,
+    u_h: np.ndarray,
+    *,
+    sample_time: float | None = None,
+) -> np.ndarray:
+    """Initial state of the periodic steady state under one period ``u_h``.
+
+    The ``x0`` with ``x(N) = x0``: ``simulate(system, u_h, F, x0=x0)`` then
+    records the steady state of ``u_h`` applied periodically (no transient,
+    ``transient_frf`` is zero), as after many periods of a multisine.
+    Solves ``(I - A^N) x0 = x_N``, ``x_N`` the state after one period from
+    rest.
+
+    Parameters
+    ----------
+    system : control.StateSpace or control.TransferFunction
+        Discrete-time system, SISO or MIMO, with every pole inside the unit
+        circle.
+    u_h : ndarray of shape (N,) or (n_u, N)
+        One period of the input.
+    sample_time : float, optional
+        As in :func:`simulate`.
+
+    Returns
+    -------
+    ndarray of shape (n_states,)
+
+    Raises
+    ------
+    ValueError
+        If the system has a pole on or outside the unit circle (e.g. a free
+        rigid body, whose position drifts): it has no periodic steady state.
+    """
+    A, _, _, _, _ = _system_matrices(system, sample_time)
+    radius = float(np.max(np.abs(np.linalg.eigvals(A)), initial=0.0))
+    if radius >= 1.0 - 1e-9:
+        raise ValueError(
+            f"the system has a pole of magnitude {radius:.6g} (on or outside the "
+            "unit circle, e.g. a free rigid body): it has no periodic steady "
+            "state. Close the loop around it, or suspend the body "
+            "(lrmfrf.plants.wafer_stage(suspension=...))."
+        )
+    end = simulate(system, u_h, 1, sample_time=sample_time).x_final
+    n = u_h.shape[-1]
+    return np.linalg.solve(np.eye(A.shape[0]) - np.linalg.matrix_power(A, n), end)
 
 
 def frequency_grid(n_samples: int, sample_time: float) -> np.ndarray:

@@ -72,6 +72,29 @@ def test_open_loop_stage_gives_the_plant_channels():
     assert stage.margins().phase_margin >= 30.0  # the controller is still checked
 
 
+def test_open_loop_stage_is_suspended_closed_loop_stage_is_free():
+    stage, draw = random_stage(3, loop="open")
+    frequency, damping = stage.suspension
+    assert 2.0 <= frequency <= 10.0 and 0.05 <= damping <= 0.2
+    # known answer: the body's poles are -zeta w_s +- j w_s sqrt(1 - zeta^2)
+    w = 2 * np.pi * frequency
+    expected = np.array([-damping * w + 1j * w * np.sqrt(1 - damping**2)])
+    poles = np.linalg.eigvals(stage.plant_continuous.A)
+    assert np.min(np.abs(poles - expected)) < 1e-9 * w
+    assert np.max(np.abs(np.linalg.eigvals(stage.plant.A))) < 1.0  # stable
+    # the closed-loop stage of the same seed: a free body (a double pole at 0)
+    # and the same draw (the suspension comes from a child generator)
+    closed, closed_draw = random_stage(3)
+    assert closed.suspension is None
+    assert np.sum(np.abs(np.linalg.eigvals(closed.plant_continuous.A)) < 1e-12) == 2
+    assert closed_draw == draw and closed.modes == stage.modes
+    # a given suspension, or a free body in open loop
+    given, _ = random_stage(3, loop="open", suspension=(4.0, 0.1))
+    assert given.suspension == (4.0, 0.1)
+    free, _ = random_stage(3, loop="open", suspension=False)
+    assert free.suspension is None
+
+
 def test_given_F_and_number_of_modes():
     stage, draw = random_stage(5, n_modes=4, downsampling_factor=2)
     assert len(stage.modes) == 4 and draw.downsampling_factor == 2
@@ -93,6 +116,10 @@ def test_mimo_stages():
     [
         ({"loop": "half"}, ValueError, "`loop` must be"),
         ({"loop": "open", "mimo": True}, ValueError, "SISO"),
+        ({"mimo": True, "suspension": True}, ValueError, "`suspension` is for SISO"),
+        ({"suspension": (0.0, 0.1)}, ValueError, "suspension frequency"),
+        ({"suspension": (5.0, 1.5)}, ValueError, "suspension damping"),
+        ({"suspension": "soft"}, TypeError, "pair"),
         ({"n_modes": 0}, ValueError, "`n_modes`"),
         ({"downsampling_factor": 0}, ValueError, "`downsampling_factor`"),
         ({"min_phase_margin": 89.0, "max_tries": 2}, RuntimeError, "no random stage"),

@@ -17,6 +17,39 @@ def test_multisine_rms_flat_amplitude_and_bins(N):
     np.testing.assert_allclose(amplitude[1:], amplitude[1], rtol=1e-9)
 
 
+def test_multisine_with_amplitude_spectrum():
+    N = 1000
+    shape = 1.0 + np.arange(N // 2 + 1) ** 2  # e.g. 1 / |G| of a double integrator
+    u = multisine(N, rms=2.0, rng=3, amplitude=shape)
+    spectrum = np.abs(np.fft.rfft(u))
+    ratio = spectrum[1:] / shape[1:]
+    np.testing.assert_allclose(ratio, ratio[0], rtol=1e-9)
+    np.testing.assert_allclose(np.sqrt(np.mean(u**2)), 2.0, rtol=1e-12)
+    # the same phases as the flat multisine of the same seed
+    flat = np.fft.rfft(multisine(N, rng=3))
+    np.testing.assert_allclose(np.angle(np.fft.rfft(u)[1:] / flat[1:]), 0.0,
+                               atol=1e-9)
+    # with bins: only those are read
+    v = multisine(N, bins=[4, 9], rng=0, amplitude=shape)
+    V = np.abs(np.fft.rfft(v))
+    np.testing.assert_allclose(V[9] / V[4], shape[9] / shape[4], rtol=1e-9)
+    original = shape.copy()
+    multisine(N, rng=0, amplitude=shape)
+    np.testing.assert_array_equal(shape, original)  # input not modified
+
+
+@pytest.mark.parametrize("amplitude, match", [
+    (np.ones(10), r"shape \(501,\)"),
+    (np.full(501, 1 + 0j), "real array"),
+    (-np.ones(501), "finite and >= 0"),
+    (np.full(501, np.inf), "finite and >= 0"),
+    (np.zeros(501), "zero on every excited bin"),
+])
+def test_multisine_bad_amplitude(amplitude, match):
+    with pytest.raises(ValueError, match=match):
+        multisine(1000, rng=0, amplitude=amplitude)
+
+
 def test_multisine_selected_bins_and_reproducibility():
     u = multisine(1000, bins=[3, 7, 500], rng=np.random.default_rng(1))
     spectrum = np.abs(np.fft.rfft(u))

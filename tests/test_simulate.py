@@ -10,6 +10,7 @@ from lrmfrf.plants import wafer_stage
 from lrmfrf.simulate import (
     SimulationResult,
     frequency_grid,
+    periodic_state,
     simulate,
     transient_frf,
     true_frf,
@@ -129,6 +130,37 @@ def test_simulate_is_linear(stage):
 
 
 # --- frequency domain -------------------------------------------------------
+
+
+@pytest.mark.parametrize("n_inputs", [1, 2])
+def test_periodic_state_has_no_transient(stage, n_inputs):
+    rng = np.random.default_rng(8)
+    N = 1200
+    if n_inputs == 1:
+        system = stage.G_z  # closed loop: stable
+        u = rng.standard_normal(N)
+    else:
+        system = control.drss(6, 2, n_inputs, strictly_proper=True)
+        system = control.ss(system.A * 0.95 / max(1, np.max(np.abs(
+            np.linalg.eigvals(system.A)))), system.B, system.C, system.D, TS)
+        u = rng.standard_normal((n_inputs, N))
+    x0 = periodic_state(system, u)
+    result = simulate(system, u, 1, x0=x0)
+    assert np.max(np.abs(result.x_final - x0)) < 1e-12 * np.max(np.abs(x0))
+    # the steady state repeats: a second period starts where the first did
+    again = simulate(system, u, 1, x0=result.x_final)
+    np.testing.assert_allclose(again.y_h, result.y_h, rtol=0,
+                               atol=1e-11 * np.max(np.abs(result.y_h)))
+    # and the FRF identity holds without the transient term
+    if n_inputs == 1:
+        G = true_frf(system, N, one_sided=False)
+        Y = np.fft.fft(result.y_h)
+        assert _relative(G * np.fft.fft(u), Y) < 1e-10
+
+
+def test_periodic_state_of_a_free_body_is_an_error(stage):
+    with pytest.raises(ValueError, match="no periodic steady state"):
+        periodic_state(stage.plant[0, 0], np.ones(100))
 
 
 @pytest.mark.parametrize("n_samples", [1200, 1201])

@@ -484,8 +484,9 @@ class Calibrator:
     """Calibrate at a given plant model (simulation, or the fallback)."""
 
     def __init__(self, template, fitted, u, F, sample_time, bins, controller,
-                 problem, n_runs, smoothing_bins, rng):
+                 problem, n_runs, smoothing_bins, rng, steady_state=False):
         self.template, self.fitted = template, fitted
+        self.steady_state = steady_state
         self.u, self.F, self.sample_time = u, F, sample_time
         self.bins, self.controller, self.problem = bins, controller, problem
         self.n_runs, self.smoothing_bins, self.rng = n_runs, smoothing_bins, rng
@@ -511,5 +512,5 @@ class Calibrator:
             self.template, system, self.u, self.F, self.sample_time, self.noise,
             self.bins, model_frf, n_runs=self.n_runs,
             smoothing_bins=self.smoothing_bins,
-            rng=self.rng,
+            rng=self.rng, steady_state=self.steady_state,
         )

@@ -249,10 +249,12 @@ def calibrate(
     n_bands: int = 8,
     rng: np.random.Generator,
     window: int | None = None,
+    steady_state: bool = False,
 ) -> Calibration:
     """Calibrate the tests by fitting the estimator to model-generated data.
 
-    Each run simulates ``model_system`` from rest with the measured inputs,
+    Each run simulates ``model_system`` from rest (or, with ``steady_state``,
+    in the periodic steady state of each input) with the measured inputs,
     adds slow-rate noise with the measured noise spectrum, fits a clone of
     the estimator and compares its FRF with the model's. The mean error is
     the estimator bias, the RMS whitened error about it (smoothed over
@@ -281,18 +283,27 @@ def calibrate(
     rng : numpy.random.Generator
     window : int, optional
         Deprecated name of ``smoothing_bins`` (removed in the next release).
+    steady_state : bool, default False
+        Simulate the periodic steady state (:func:`lrmfrf.simulate.
+        periodic_state`) instead of starting at rest: as the measured records
+        were taken (the estimator's bias differs between the two).
 
     Returns
     -------
     Calibration
     """
-    from ..simulate import simulate
+    from ..simulate import periodic_state, simulate
 
     width = renamed_keyword(smoothing_bins, window, new="smoothing_bins",
                             old="window", default=9)
     P, N = u.shape
     M = N // F
-    clean = np.stack([simulate(model_system, u[p], F).y_l_clean for p in range(P)])
+    clean = np.stack([
+        simulate(model_system, u[p], F,
+                 x0=periodic_state(model_system, u[p]) if steady_state else None
+                 ).y_l_clean
+        for p in range(P)
+    ])
     noise_std_spectrum = _smooth_noise_spectrum(noise_variance, M)
     frfs, stds = [], []
     for _ in range(n_runs):

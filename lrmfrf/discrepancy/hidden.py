@@ -172,6 +172,8 @@ def hidden_effect_experiment(
     max_draws: int = 20,
     stage=None,
     loop: str = "closed",
+    excitation: str = "flat",
+    steady_state: bool = False,
 ) -> HiddenExperiment:
     """Simulate closed- or open-loop data of a stage with hidden effect(s).
 
@@ -198,6 +200,17 @@ def hidden_effect_experiment(
         stage's controller (``u_h`` a disturbance force), the experiment's
         ``controller`` is that controller. ``"open"``: the data are of the true
         plant itself and ``controller`` is ``None`` (what ``diagnose`` gets).
+    excitation : {"flat", "shaped"}, default "flat"
+        ``"flat"``: random-phase multisines with a flat amplitude spectrum.
+        ``"shaped"``: amplitudes ``1 / |G_nom(k)|`` of the NOMINAL system (the
+        nominal plant in open loop, its closed loop otherwise), so that the
+        nominal output spectrum is flat: what an engineer does in open loop,
+        where a flat force gives an output dominated by the low-frequency
+        motion and no SNR above it.
+    steady_state : bool, default False
+        Record the periodic steady state of each multisine
+        (:func:`lrmfrf.simulate.periodic_state`; the system must be stable)
+        instead of starting at rest.
 
     Returns
     -------
@@ -206,10 +219,14 @@ def hidden_effect_experiment(
     from ..estimators import LRMBeyondNyquist
     from ..plants import wafer_stage
     from ..signals import multisine
-    from ..simulate import simulate, true_frf
+    from ..simulate import periodic_state, simulate, true_frf
 
     if loop not in ("closed", "open"):
         raise ValueError(f"`loop` must be 'closed' or 'open'; got {loop!r}.")
+    if excitation not in ("flat", "shaped"):
+        raise ValueError(
+            f"`excitation` must be 'flat' or 'shaped'; got {excitation!r}."
+        )
     rng = np.random.default_rng(rng)
     stage = wafer_stage() if stage is None else stage
     Ts = stage.sample_time
@@ -232,10 +249,20 @@ def hidden_effect_experiment(
                 system = _closed_loop(true_plant, controller)
             except ValueError:
                 continue
-        u = np.stack([multisine(n_samples, rms=rms, rng=rng)
+        amplitude = None
+        if excitation == "shaped":
+            nominal_system = (
+                nominal if loop == "open" else _closed_loop(nominal, controller)
+            )
+            size = np.abs(true_frf(nominal_system, n_samples))
+            amplitude = 1.0 / np.maximum(size, 1e-6 * size.max())
+        u = np.stack([multisine(n_samples, rms=rms, rng=rng, amplitude=amplitude)
                       for _ in range(n_experiments)])
-        sims = [simulate(system, u[p], F, snr_db=snr_db, rng=rng)
-                for p in range(n_experiments)]
+        sims = [
+            simulate(system, u[p], F, snr_db=snr_db, rng=rng,
+                     x0=periodic_state(system, u[p]) if steady_state else None)
+            for p in range(n_experiments)
+        ]
         # P SISO experiments: 3-D (P, 1, N) and (P, 1, M) records
         u = u[:, None, :]
         y = np.stack([s.y_l for s in sims])[:, None, :]
@@ -349,7 +376,8 @@ def _true_plant(stage, effects) -> control.StateSpace:
                                 old.participation_z)
         else:
             raise ValueError(f"unknown effect {effect.name!r}")
-    continuous = modal_plant(stage.mass, modes, outputs=("y4",))
+    continuous = modal_plant(stage.mass, modes, outputs=("y4",),
+                             suspension=getattr(stage, "suspension", None))
     continuous = control.ss(control.series(control.ss(series), continuous)) * gain
     return _lifted_zoh(continuous, stage.sample_time, delay)
 

@@ -14,7 +14,11 @@ plate with random plate modes and geometry). What is drawn:
 * collocated participations (``y4``, or the plate's corner patterns) positive,
   0.02-0.4; non-collocated ones (``z``, the point of interest) of random sign,
   0.1-1.5;
-* the mass (1-20 kg, log-uniform) and a lead-PID bandwidth of 20-80 Hz.
+* the mass (1-20 kg, log-uniform) and a lead-PID bandwidth of 20-80 Hz;
+* for ``loop="open"`` (SISO) a suspension of the body, 2-10 Hz with 5-20 %
+  damping, from a child generator (so the rest of the draw equals the
+  closed-loop stage of the same seed): a free body has no periodic steady
+  state and drifts away in an open-loop experiment.
 
 A draw whose closed loop is unstable or has less than ``min_phase_margin``
 degrees of phase margin (or 2 of gain margin) is redrawn; every returned loop
@@ -29,7 +33,7 @@ import numpy as np
 
 from .._validation import check_rng, check_sample_time
 from .mimo_stage import PlateMode, mimo_wafer_stage
-from .siso_stage import Mode, _named, wafer_stage
+from .siso_stage import Mode, _check_suspension, _named, wafer_stage
 
 __all__ = ["RandomDraw", "random_stage"]
 
@@ -74,6 +78,7 @@ def random_stage(
     sample_time: float = 0.5e-3,
     min_phase_margin: float = 30.0,
     max_tries: int = 200,
+    suspension=None,
 ):
     """Draw a random wafer-stage-like plant with a checked feedback loop.
 
@@ -97,6 +102,13 @@ def random_stage(
         Smallest phase margin in degrees of every returned loop.
     max_tries : int, default 200
         Draws before giving up.
+    suspension : bool, (frequency_hz, damping) or None
+        SISO only. ``True``: suspend the body on a drawn spring and damper
+        (2-10 Hz, damping 5-20 %, log-uniform), a stable plant; ``False``: a
+        free rigid body; a pair: that suspension. Default (``None``):
+        suspended for ``loop="open"`` (a free body drifts away in an open-loop
+        experiment and has no periodic steady state), free for
+        ``loop="closed"``.
 
     Returns
     -------
@@ -120,6 +132,20 @@ def random_stage(
         raise ValueError(f"`loop` must be 'closed' or 'open'; got {loop!r}.")
     if loop == "open" and mimo:
         raise ValueError("loop='open' is for SISO stages; pass mimo=False.")
+    if suspension is None:
+        suspension = loop == "open" and not mimo
+    if mimo and suspension is not False:
+        raise ValueError("`suspension` is for SISO stages; pass mimo=False.")
+    if suspension is not True and suspension is not False:
+        suspension = _check_suspension(suspension)
+    if suspension is True:
+        # from a child generator: the rest of the draw is the same stream as
+        # for a free body (spawning does not advance ``generator``)
+        child = generator.spawn(1)[0]
+        suspension = (
+            float(np.exp(child.uniform(np.log(2.0), np.log(10.0)))),
+            float(np.exp(child.uniform(np.log(0.05), np.log(0.2)))),
+        )
     F = (
         int(generator.integers(2, 6))
         if downsampling_factor is None
@@ -142,7 +168,7 @@ def random_stage(
                 margins = list(stage.margins().values())
             else:
                 stage = _siso(generator, frequencies, damping, mass, bandwidth, F,
-                              sample_time, loop)
+                              sample_time, loop, suspension or None)
                 margins = [stage.margins()]
         except ValueError:  # the loop is unstable: draw again
             continue
@@ -185,7 +211,8 @@ def _mode_frequencies(generator, count: int, F: int, sample_time: float):
     return frequencies, pairs
 
 
-def _siso(generator, frequencies, damping, mass, bandwidth, F, sample_time, loop):
+def _siso(generator, frequencies, damping, mass, bandwidth, F, sample_time, loop,
+          suspension):
     modes = [
         Mode(
             f,
@@ -197,7 +224,8 @@ def _siso(generator, frequencies, damping, mass, bandwidth, F, sample_time, loop
         for f, z in zip(frequencies, damping, strict=True)
     ]
     stage = wafer_stage(sample_time=sample_time, mass=mass, modes=modes,
-                        controller_bandwidth=bandwidth, downsampling_factor=F)
+                        controller_bandwidth=bandwidth, downsampling_factor=F,
+                        suspension=suspension)
     if loop == "open":
         stage = replace(stage, G_y4=_named(stage.plant[0, 0], "P_y4", "y4"),
                         G_z=_named(stage.plant[1, 0], "P_z", "z"))

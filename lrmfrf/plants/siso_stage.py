@@ -164,6 +164,8 @@ class WaferStage:
         Rigid-body mass in kg.
     downsampling_factor : int
         Ratio ``F`` of the slow (sensor) to the fast sample time.
+    suspension : (frequency_hz, damping) or None
+        The suspension of the body (None: a free rigid body).
     """
 
     plant: control.StateSpace
@@ -175,6 +177,7 @@ class WaferStage:
     modes: tuple[Mode, ...]
     mass: float
     downsampling_factor: int = 3
+    suspension: tuple[float, float] | None = None
 
     @property
     def slow_nyquist_hz(self) -> float:
@@ -196,12 +199,14 @@ def modal_plant(
     modes: Sequence[Mode],
     *,
     outputs: Sequence[str] = _OUTPUT_NAMES,
+    suspension: tuple[float, float] | None = None,
 ) -> control.StateSpace:
     """Continuous rigid-body-plus-modes plant in a well-scaled modal form.
 
     The state matrix is block diagonal with one 2x2 block per mode: the rigid
-    body has states ``[position, velocity]``; flexible mode ``i`` has states
-    ``[w_i q_i, dq_i/dt]`` (scaled so both are velocities), block
+    body has states ``[position, velocity]`` (block ``[[0, 1], [0, 0]]``, or
+    ``[[0, 1], [-w_s^2, -2 zeta_s w_s]]`` when suspended); flexible mode ``i``
+    has states ``[w_i q_i, dq_i/dt]`` (scaled so both are velocities), block
     ``[[0, w_i], [-w_i, -2 zeta_i w_i]]``, input column ``[0, 1/m]`` and
     output row ``[p_{o,i} / w_i, 0]``. No transfer-function polynomials are
     formed.
@@ -214,6 +219,10 @@ def modal_plant(
         Flexible modes; frequencies > 0 Hz, damping in ``[0, 1)``.
     outputs : sequence of str, default ("y4", "z")
         Outputs to include, in order; each ``"y4"`` or ``"z"``.
+    suspension : (frequency_hz, damping), optional
+        Suspend the body on a spring and damper: its ``1 / (m s^2)`` becomes
+        ``1 / (m (s^2 + 2 zeta_s w_s s + w_s^2))``, a stable plant (needed for
+        an open-loop experiment). Default: a free rigid body.
 
     Returns
     -------
@@ -223,6 +232,7 @@ def modal_plant(
     """
     _check_mass(mass)
     modes = _check_modes(modes)
+    suspension = _check_suspension(suspension)
     outputs = tuple(outputs)
     bad = [name for name in outputs if name not in _OUTPUT_NAMES]
     if bad or not outputs:
@@ -231,6 +241,9 @@ def modal_plant(
             f"{outputs!r}. Use e.g. outputs=('y4', 'z')."
         )
     blocks = [np.array([[0.0, 1.0], [0.0, 0.0]])]
+    if suspension is not None:
+        omega_s = 2.0 * math.pi * suspension[0]
+        blocks[0][1] = [-(omega_s**2), -2.0 * suspension[1] * omega_s]
     columns = [np.array([0.0, 1.0 / mass])]
     rows = [np.ones((len(outputs), 1)) * np.array([[1.0, 0.0]])]
     state_names = ["rigid.position", "rigid.velocity"]
@@ -328,6 +341,7 @@ def wafer_stage(
     damping_scale: float = 1.0,
     controller_bandwidth: float = 40.0,
     downsampling_factor: int = 3,
+    suspension: tuple[float, float] | None = None,
 ) -> WaferStage:
     """Build the OAT-like wafer stage and its closed-loop equivalent systems.
 
@@ -347,6 +361,11 @@ def wafer_stage(
     downsampling_factor : int, default 3
         Slow-to-fast sample-time ratio ``F`` of the scanning sensor (stored;
         used by :attr:`WaferStage.slow_nyquist_hz`).
+    suspension : (frequency_hz, damping), optional
+        A suspended body instead of a free rigid body (see
+        :func:`modal_plant`): the plant is then stable, so it can be
+        identified in open loop. The controller is designed as for the free
+        body.
 
     Returns
     -------
@@ -397,7 +416,8 @@ def wafer_stage(
             f"damping_scale={damping_scale!r} pushes a damping ratio to >= 1; "
             "keep damping * damping_scale below 1."
         )
-    plant_continuous = modal_plant(mass, scaled)
+    suspension = _check_suspension(suspension)
+    plant_continuous = modal_plant(mass, scaled, suspension=suspension)
     plant = _zoh(plant_continuous, sample_time)
     controller = lead_pid_controller(
         controller_bandwidth, mass, sample_time=sample_time
@@ -414,12 +434,34 @@ def wafer_stage(
         modes=scaled,
         mass=float(mass),
         downsampling_factor=int(downsampling_factor),
+        suspension=suspension,
     )
 
 
 # ---------------------------------------------------------------------------
 # Private helpers
 # ---------------------------------------------------------------------------
+
+
+def _check_suspension(suspension) -> tuple[float, float] | None:
+    if suspension is None:
+        return None
+    try:
+        frequency, damping = (float(v) for v in suspension)
+    except (TypeError, ValueError):
+        raise TypeError(
+            "`suspension` must be a pair (frequency_hz, damping), e.g. (5.0, 0.1), "
+            f"or None for a free rigid body; got {suspension!r}."
+        ) from None
+    if not (np.isfinite(frequency) and frequency > 0):
+        raise ValueError(
+            f"suspension frequency must be a finite value > 0 Hz; got {frequency!r}."
+        )
+    if not (np.isfinite(damping) and 0.0 < damping < 1.0):
+        raise ValueError(
+            f"suspension damping must be in (0, 1); got {damping!r}."
+        )
+    return frequency, damping
 
 
 def _check_modes(modes: Sequence[Mode]) -> tuple[Mode, ...]:
