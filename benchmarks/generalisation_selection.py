@@ -4,7 +4,9 @@ For each random stage ``lrmfrf.plants.random_stage(seed)`` (its own ``F``) and
 each of its four systems (``G_y4`` and ``G_z``, closed and open loop), one
 record is simulated: a random-phase multisine of ``N = 400 F`` samples (the
 slow record has ``M = 400`` samples, ``N = 1200`` at ``F = 3``), slow-output
-noise at a signal-to-noise ratio drawn from 30-45 dB. ``wafer_stage()``
+noise at a signal-to-noise ratio drawn from 30-45 dB. Open-loop stages are
+suspended (``random_stage(loop="open")``) and their records are the steady
+state of a force shaped to the plant (:func:`record_ingredients`). ``wafer_stage()``
 (``F = 3``) is added with ``seed="wafer"``. Every setting of
 ``LRMBeyondNyquistCV``'s default grid is fitted once (closed form, QR with
 leverages); its error is the median over the valid fast bins ``k >= 1`` (true
@@ -63,7 +65,7 @@ from lrmfrf.estimators.selection import (
 from lrmfrf.local_models import one_sided_fast_grid
 from lrmfrf.plants import mimo_wafer_stage, random_stage, wafer_stage
 from lrmfrf.signals import multisine, orthogonal_multisines
-from lrmfrf.simulate import simulate, true_frf
+from lrmfrf.simulate import periodic_state, simulate, true_frf
 from lrmfrf.windows import LocalModelLayout
 
 #: Slow samples per record (N = SLOW_SAMPLES * F).
@@ -161,8 +163,15 @@ def mimo_grid(F: int, M: int = SLOW_SAMPLES) -> list[dict]:
     return out
 
 
-def record_ingredients(system, F: int, seed: int, grid=None) -> dict:
+def record_ingredients(system, F: int, seed: int, grid=None, *,
+                       open_loop: bool = False) -> dict:
     """Simulate one record; per candidate its true error and criteria inputs.
+
+    ``open_loop``: the record of an open-loop (suspended) stage is taken as an
+    engineer would, and as ``generalisation_diagnose.py`` does: the force
+    shaped to the plant (amplitudes ``1 / |G(k)|``) and the periodic steady
+    state; a flat force from rest leaves the FRF above a few tens of Hz
+    buried in the noise and the transient of the low-frequency motion.
 
     Returns
     -------
@@ -176,9 +185,14 @@ def record_ingredients(system, F: int, seed: int, grid=None) -> dict:
     rng = np.random.default_rng(seed)
     N = SLOW_SAMPLES * F
     snr = float(rng.uniform(*SNR_RANGE))
-    u = multisine(N, rng=rng)
-    sim = simulate(system, u, F, snr_db=snr, rng=rng)
     G = true_frf(system, N)
+    amplitude = None
+    if open_loop:
+        size = np.abs(G)
+        amplitude = 1.0 / np.maximum(size, 1e-6 * size.max())
+    u = multisine(N, rng=rng, amplitude=amplitude)
+    sim = simulate(system, u, F, snr_db=snr, rng=rng,
+                   x0=periodic_state(system, u) if open_loop else None)
     U = np.fft.fft(u)[None]
     Y = np.fft.fft(sim.y_l)[None]
     grid = default_grid(F) if grid is None else grid
@@ -328,8 +342,10 @@ def selection_table(seeds, *, criteria=CRITERIA, n_jobs: int = 1,
                 for k, seed in enumerate(seeds)
                 for label, system, F in systems(seed)]
         out = Parallel(n_jobs=n_jobs)(
-            delayed(ingredients)(system, F, rec_seed)
-            for _, system, F, rec_seed in jobs
+            delayed(ingredients)(system, F, rec_seed,
+                                 **({"open_loop": True} if "/open/" in label
+                                    else {}))
+            for label, system, F, rec_seed in jobs
         )
         records = [{**r, "label": label} for (label, *_), r in zip(jobs, out,
                                                                    strict=True)]
