@@ -90,12 +90,14 @@ def _eiv_range_py(
     ok = np.empty(LANES, np.bool_)
     k = np.empty(LANES, np.int64)
     wt = np.empty((L, LANES), f64)
-    Kr = np.empty((p, p, LANES), f64)
-    Ki = np.empty((p, p, LANES), f64)
-    Sh_r = np.empty((n_shared, n_shared, LANES), f64)
-    Sh_i = np.empty((n_shared, n_shared, LANES), f64)
-    Cr = np.empty((p, p, LANES), f64)
-    Ci = np.empty((p, p, LANES), f64)
+    # K = L^-1, its shared Gram K11^H K11 and C = G^-1: packed lower
+    n_packed_shared = n_shared * (n_shared + 1) // 2
+    Kr = np.empty((n_packed, LANES), f64)
+    Ki = np.empty((n_packed, LANES), f64)
+    Sh_r = np.empty((n_packed_shared, LANES), f64)
+    Sh_i = np.empty((n_packed_shared, LANES), f64)
+    Cr = np.empty((n_packed, LANES), f64)
+    Ci = np.empty((n_packed, LANES), f64)
     cbr = np.empty((p, n_bands, LANES), f64)
     cbi = np.empty((p, n_bands, LANES), f64)
     ybr = np.empty((p, n_bands, LANES), f64)
@@ -124,7 +126,7 @@ def _eiv_range_py(
         for w in range(LANES):
             ok_shared[w] = True
         _compiled._cholesky_rows(Hr, Hi, scale2, ok_shared, tol2, 0, n_shared)
-        _compiled._tail_inverse(Hr, Hi, n_shared, n_shared, Kr, Ki)
+        _inverse_rows(Hr, Hi, 0, n_shared, Kr, Ki, acc_r, acc_i)
         _lower_gram_rows(Kr, Ki, 0, n_shared, n_shared, Sh_r, Sh_i, acc_r,
                          acc_i)
         for o in range(Y.shape[0]):
@@ -145,11 +147,10 @@ def _eiv_range_py(
             # 3. G^-1 = K^H K (lower): the shared K11^H K11 plus the sums
             # over this row's rows of K
             _lower_gram_rows(Kr, Ki, n_shared, p, p, Cr, Ci, acc_r, acc_i)
-            for c in range(n_shared):
-                for d in range(c + 1):
-                    for w in range(LANES):
-                        Cr[c, d, w] += Sh_r[c, d, w]
-                        Ci[c, d, w] += Sh_i[c, d, w]
+            for e in range(n_packed_shared):  # (the leading block, packed)
+                for w in range(LANES):
+                    Cr[e, w] += Sh_r[e, w]
+                    Ci[e, w] += Sh_i[e, w]
             # 4. H = A^H diag(w) A with this row's w(r) = |e(x_r)|^2: every
             # pair series times w before its moments
             _denominator_weight(den[o], powers, first, wt)
@@ -202,9 +203,10 @@ def _denominator_weight_py(den, powers, first, wt):
 
 def _inverse_rows_py(Hr, Hi, lo, hi, Kr, Ki, acc_r, acc_i):
     """Rows ``lo..hi-1`` of ``K = L^-1`` (``L`` packed lower, inverse pivots
-    in ``Hi`` at the diagonal), rows ``0..lo-1`` of ``K`` given: ``K_ii =
-    1 / L_ii``, ``K_ic = -(sum_{m=c}^{i-1} L_im K_mc) / L_ii`` (the sums of
-    :func:`lrmfrf._compiled._tail_inverse`, in the same order)."""
+    in ``Hi`` at the diagonal; ``K`` packed lower), rows ``0..lo-1`` of ``K``
+    given: ``K_ii = 1 / L_ii``, ``K_ic = -(sum_{m=c}^{i-1} L_im K_mc) /
+    L_ii`` (the sums of :func:`lrmfrf._compiled._tail_inverse`, in the same
+    order)."""
     for i in range(lo, hi):
         ri = i * (i + 1) // 2
         inv = ri + i
@@ -213,74 +215,78 @@ def _inverse_rows_py(Hr, Hi, lo, hi, Kr, Ki, acc_r, acc_i):
                 acc_r[w] = 0.0
                 acc_i[w] = 0.0
             for m in range(c, i):
+                mc = m * (m + 1) // 2 + c
                 for w in range(LANES):
                     lr = Hr[ri + m, w]
                     li = Hi[ri + m, w]
-                    acc_r[w] += lr * Kr[m, c, w] - li * Ki[m, c, w]
-                    acc_i[w] += lr * Ki[m, c, w] + li * Kr[m, c, w]
+                    acc_r[w] += lr * Kr[mc, w] - li * Ki[mc, w]
+                    acc_i[w] += lr * Ki[mc, w] + li * Kr[mc, w]
             for w in range(LANES):
-                Kr[i, c, w] = -acc_r[w] * Hi[inv, w]
-                Ki[i, c, w] = -acc_i[w] * Hi[inv, w]
+                Kr[ri + c, w] = -acc_r[w] * Hi[inv, w]
+                Ki[ri + c, w] = -acc_i[w] * Hi[inv, w]
         for w in range(LANES):
-            Kr[i, i, w] = Hi[inv, w]
-            Ki[i, i, w] = 0.0
+            Kr[inv, w] = Hi[inv, w]
+            Ki[inv, w] = 0.0
 
 
 def _lower_gram_rows_py(Kr, Ki, lo, hi, n, Cr, Ci, acc_r, acc_i):
-    """Lower triangle of ``sum_{i=lo}^{hi-1} conj(K[i, :n])^T K[i, :n]``
-    (``K`` lower triangular: the sum for ``C[c, d]``, ``c >= d``, starts at
-    ``i = max(lo, c)``)."""
+    """Lower triangle (packed) of ``sum_{i=lo}^{hi-1} conj(K[i, :n])^T
+    K[i, :n]`` (``K`` lower triangular, packed: the sum for ``C[c, d]``,
+    ``c >= d``, starts at ``i = max(lo, c)``)."""
     for c in range(n):
         for d in range(c + 1):
             for w in range(LANES):
                 acc_r[w] = 0.0
                 acc_i[w] = 0.0
             for i in range(max(lo, c), hi):
+                ri = i * (i + 1) // 2
                 for w in range(LANES):
                     # conj(K[i,c]) K[i,d]
-                    kcr = Kr[i, c, w]
-                    kci = Ki[i, c, w]
-                    acc_r[w] += kcr * Kr[i, d, w] + kci * Ki[i, d, w]
-                    acc_i[w] += kcr * Ki[i, d, w] - kci * Kr[i, d, w]
+                    kcr = Kr[ri + c, w]
+                    kci = Ki[ri + c, w]
+                    acc_r[w] += kcr * Kr[ri + d, w] + kci * Ki[ri + d, w]
+                    acc_i[w] += kcr * Ki[ri + d, w] - kci * Kr[ri + d, w]
+            e = c * (c + 1) // 2 + d
             for w in range(LANES):
-                Cr[c, d, w] = acc_r[w]
-                Ci[c, d, w] = acc_i[w]
+                Cr[e, w] = acc_r[w]
+                Ci[e, w] = acc_i[w]
 
 
 def _trace_of_product_py(Cr, Ci, Wr, Wi, p, acc_r):
-    """``acc_r = tr(C W)`` from the lower triangles of the Hermitian ``C``
-    (full storage) and ``W`` (packed)."""
+    """``acc_r = tr(C W)`` from the packed lower triangles of the Hermitian
+    ``C`` and ``W``."""
     for w in range(LANES):
         acc_r[w] = 0.0
     for c in range(p):
         rc = c * (c + 1) // 2
         for w in range(LANES):
-            acc_r[w] += Cr[c, c, w] * Wr[rc + c, w]
+            acc_r[w] += Cr[rc + c, w] * Wr[rc + c, w]
         for d in range(c):
             for w in range(LANES):
-                acc_r[w] += 2.0 * (Cr[c, d, w] * Wr[rc + d, w]
-                                   + Ci[c, d, w] * Wi[rc + d, w])
+                acc_r[w] += 2.0 * (Cr[rc + d, w] * Wr[rc + d, w]
+                                   + Ci[rc + d, w] * Wi[rc + d, w])
 
 
 def _band_sandwich_py(Cr, Ci, Wr, Wi, p, band_first, n_bands, first, B, cbr, cbi,
                       ybr, ybi, qr, qi, lead):
     """``lead[first + w] = C_b^H W C_b``, ``C_b = C[:, band_first:band_first +
-    n_bands]`` (``C`` Hermitian, lower triangle in full storage; ``W``
-    Hermitian, packed lower) from the lower triangle of ``W`` only: with
-    ``W = W' + W'^H``, ``W'`` its strict lower triangle plus half its
-    diagonal, ``Y = W' C_b`` (``p^2 n_bands / 2`` products) and ``Q = C_b^H
-    Y``, the sandwich is ``Q + Q^H``."""
+    n_bands]`` (``C`` and ``W`` Hermitian, packed lower) from the lower
+    triangle of ``W`` only: with ``W = W' + W'^H``, ``W'`` its strict lower
+    triangle plus half its diagonal, ``Y = W' C_b`` (``p^2 n_bands / 2``
+    products) and ``Q = C_b^H Y``, the sandwich is ``Q + Q^H``."""
     for j in range(p):  # C_b from the lower triangle of C
         for b in range(n_bands):
             cb = band_first + b
             if j >= cb:
+                e = j * (j + 1) // 2 + cb
                 for w in range(LANES):
-                    cbr[j, b, w] = Cr[j, cb, w]
-                    cbi[j, b, w] = Ci[j, cb, w]
+                    cbr[j, b, w] = Cr[e, w]
+                    cbi[j, b, w] = Ci[e, w]
             else:
+                e = cb * (cb + 1) // 2 + j
                 for w in range(LANES):
-                    cbr[j, b, w] = Cr[cb, j, w]
-                    cbi[j, b, w] = -Ci[cb, j, w]
+                    cbr[j, b, w] = Cr[e, w]
+                    cbi[j, b, w] = -Ci[e, w]
     for i in range(p):
         ri = i * (i + 1) // 2
         for b in range(n_bands):
