@@ -493,7 +493,13 @@ def eiv_terms_rows(
     # as variance_terms: the trace within q min w .. q max w
     q = max(layout.dof, 0)
     trace = np.clip(w_sum - hw_trace, q * w_min, q * w_max)
-    redo = good & ~ok
+    # windows whose pivot check failed, or whose band block (S^H diag(w) S,
+    # positive semi-definite) has a negative diagonal: round-off of a nearly
+    # singular G (e.g. a rank-deficient denominator block on noise-free data)
+    # dominates there; the dense route checks its inverse and falls back to
+    # the pseudo-inverse
+    negative = np.any(np.real(np.diagonal(lead, axis1=-2, axis2=-1)) < 0, axis=-1)
+    redo = good & (~ok | negative)
     chunk = qr_chunk_size(layout)
     # (threadpoolctl inspects the loaded libraries on entry: only when needed)
     with _single_threaded_blas() if redo.any() else contextlib.nullcontext():
