@@ -1,12 +1,12 @@
 """Compiled errors-in-variables terms of the closed form (optional, needs numba).
 
-:func:`eiv_windows` computes, for every window and given the closed-form
-parameters, the two ingredients of the ``"eiv"`` route of
+:func:`eiv_windows` computes, for every window and output row and given the
+closed-form parameters, the two ingredients of the ``"eiv"`` route of
 :mod:`lrmfrf.uncertainty` without forming the regressor ``A``:
 
 - ``S^H diag(w) S = [G^-1 H G^-1]`` at the window-centre band columns, with
   ``G = A^H A``, ``H = A^H diag(w) A`` and ``w_r = |e(x_r)|^2`` the squared
-  local denominator on the window;
+  local denominator of the row on the window;
 - ``sum_r w_r (1 - h_r) = sum_r w_r - tr(G^-1 H)`` (``h_r`` the leverages).
 
 Both Gram matrices come from the moment form of :mod:`lrmfrf._compiled`
@@ -15,9 +15,25 @@ tables, ``H`` with its row-weighted tables (those of Sanathanan-Koerner), the
 pair series multiplied by ``w(r)`` before their moments are taken, which is
 exact because ``w`` multiplies every column product alike. ``G`` is
 Cholesky-factorised with the same equilibrated pivot check as the closed
-form; ``G^-1`` follows from the inverse of the factor. Windows whose check
-fails are flagged (``ok`` False) for the caller's dense fallback. Windows are
-processed in SIMD lanes and threads as in :mod:`lrmfrf._compiled`.
+form; windows whose check fails are flagged (``ok`` False) for the caller's
+dense fallback. Windows are processed in SIMD lanes and threads as in
+:mod:`lrmfrf._compiled`.
+
+Several output rows share a window's input and transient columns, as in
+:func:`lrmfrf._compiled.solve_windows`: with those ``n_s`` columns first and
+each row's ``R_e`` denominator columns last,
+
+    G = [[G11, G12], [G21, G22]],   L = [[L11, 0], [L21, L22]],
+    K = L^-1 = [[K11, 0], [X, K22]],  K11 = L11^-1,  K22 = L22^-1,
+    X = -K22 L21 K11,
+
+so ``G^-1 = K^H K`` has the leading block ``K11^H K11 + X^H X``. The factor
+``L11``, its inverse ``K11`` and the Gram ``K11^H K11`` (the ``n_s^3`` work)
+are computed once per window; each row adds its rows of ``L`` (the Schur
+complement of its denominator columns), its rows ``[X, K22]`` of ``K`` and
+their contribution to ``K^H K`` (``O(R_e p^2)`` work), then its ``H``,
+``tr(G^-1 H)`` (``p^2``) and the band block from ``H G^-1[:, bands]``
+(``p^2 n_bands / 2``, the lower triangle of ``H``).
 """
 
 from __future__ import annotations
@@ -39,18 +55,18 @@ _GROUPS_PER_TASK = 8
 
 
 def _eiv_range_py(
-    U, Y, bins, den, powers, data_index, F, n_centre, n_bands, q_basis,
-    g_kind, g_a, g_b, g_nd, g_off, g_ptr, g_mom, g_coef, g_conj, g_const,
-    g_rhs_ptr, g_rhs_mom, g_rhs_coef, g_n_moments,
-    w_kind, w_a, w_b, w_nd, w_off, w_ptr, w_mom, w_coef, w_conj, w_const,
-    w_rhs_ptr, w_rhs_mom, w_rhs_coef, w_n_moments, p, tol2, lead, trace, wsum,
-    wmin, wmax, ok_out,
-    first_group, stop_group,
+    U, Y, bins, den, powers, F, n_shared, n_shared_pairs, band_first, n_bands,
+    q_basis, g_kind, g_a, g_b, g_nd, g_off, g_ptr, g_mom, g_coef, g_conj,
+    g_const, g_n_moments, w_kind, w_a, w_b, w_nd, w_off, w_ptr, w_mom, w_coef,
+    w_conj, w_const, w_n_moments, p, tol2, lead, trace, wsum, wmin, wmax,
+    ok_out, first_group, stop_group,
 ):
-    """Lane groups ``first_group..stop_group-1`` (one thread's share)."""
+    """Lane groups ``first_group..stop_group-1`` (one thread's share), every
+    output row ``Y[o]``; results ``lead[o]``, ``trace[o]`` ... of each row."""
     P = U.shape[0]
     L = powers.shape[0]
     n = L // 2
+    M = Y.shape[2] // 2
     f64 = np.float64
     sr = np.empty((F + 1, P, L, LANES), f64)
     si = np.empty((F + 1, P, L, LANES), f64)
@@ -69,166 +85,254 @@ def _eiv_range_py(
     Hi = np.empty((n_packed, LANES), f64)
     Wr = np.empty((n_packed, LANES), f64)
     Wi = np.empty((n_packed, LANES), f64)
-    gr = np.empty((p, LANES), f64)
-    gi = np.empty((p, LANES), f64)
     scale2 = np.empty((p, LANES), f64)
+    ok_shared = np.empty(LANES, np.bool_)
     ok = np.empty(LANES, np.bool_)
     k = np.empty(LANES, np.int64)
     wt = np.empty((L, LANES), f64)
-    Kr = np.empty((p, p, LANES), f64)
-    Ki = np.empty((p, p, LANES), f64)
-    Cr = np.empty((p, p, LANES), f64)
-    Ci = np.empty((p, p, LANES), f64)
-    Zr = np.empty((p, LANES), f64)
-    Zi = np.empty((p, LANES), f64)
+    # K = L^-1, its shared Gram K11^H K11 and C = G^-1: packed lower
+    n_packed_shared = n_shared * (n_shared + 1) // 2
+    Kr = np.empty((n_packed, LANES), f64)
+    Ki = np.empty((n_packed, LANES), f64)
+    Sh_r = np.empty((n_packed_shared, LANES), f64)
+    Sh_i = np.empty((n_packed_shared, LANES), f64)
+    Cr = np.empty((n_packed, LANES), f64)
+    Ci = np.empty((n_packed, LANES), f64)
+    cbr = np.empty((p, n_bands, LANES), f64)
+    cbi = np.empty((p, n_bands, LANES), f64)
+    ybr = np.empty((p, n_bands, LANES), f64)
+    ybi = np.empty((p, n_bands, LANES), f64)
+    qr = np.empty((n_bands, n_bands, LANES), f64)
+    qi = np.empty((n_bands, n_bands, LANES), f64)
     acc_r = np.empty(LANES, f64)
     acc_i = np.empty(LANES, f64)
     B = bins.shape[0]
-    Re = powers.shape[1]
-    off = p - n_centre
+    shared_entries = n_shared * (n_shared + 1) // 2
+    n_g_pairs = g_kind.shape[0]
     for group in range(first_group, stop_group):
         first = group * LANES
         for w in range(LANES):
             k[w] = bins[min(first + w, B - 1)]
-        _compiled._gather(U, Y, k, F, n, sr, si)
-        # the squared denominator on the window, w(r) = |e(x_r)|^2
-        for r in range(L):
-            for w in range(LANES):
-                row = min(first + w, B - 1)
-                er = 1.0
-                ei = 0.0
-                for s in range(Re):
-                    er += den[row, s, 0] * powers[r, s]
-                    ei += den[row, s, 1] * powers[r, s]
-                wt[r, w] = er * er + ei * ei
-        # G = A^H A (the closed form's tables) and H = A^H diag(w) A (the
-        # weighted tables: the same pairs at the same offsets, then the
-        # transient-transient series, which is w itself): each pair series
-        # once, its moments as it is and times w(r)
-        for t in range(w_kind.shape[0]):
-            _compiled._pair_series(sr, si, w_kind[t], w_a[t], w_b[t], Sr, Si)
-            if t < g_kind.shape[0]:
+        # 1. shared by the rows: the inputs' window data, the Gram block of
+        # the input and transient columns, its factor L11, K11 = L11^-1 and
+        # K11^H K11
+        _compiled._gather_inputs(U, M, k, F, n, sr, si)
+        for t in range(n_shared_pairs):
+            _compiled._pair_series(sr, si, g_kind[t], g_a[t], g_b[t], Sr, Si)
+            _compiled._moments(Sr, Si, q_basis, g_off[t], g_nd[t], Er, Ei, Or,
+                               Oi, mr, mi)
+        _compiled._gram_entries(mr, mi, g_ptr, g_mom, g_coef, g_conj, g_const,
+                                0, shared_entries, Hr, Hi)
+        for w in range(LANES):
+            ok_shared[w] = True
+        _compiled._cholesky_rows(Hr, Hi, scale2, ok_shared, tol2, 0, n_shared)
+        _inverse_rows(Hr, Hi, 0, n_shared, Kr, Ki, acc_r, acc_i)
+        _lower_gram_rows(Kr, Ki, 0, n_shared, n_shared, Sh_r, Sh_i, acc_r,
+                         acc_i)
+        for o in range(Y.shape[0]):
+            # 2. this row's denominator columns: its rows of G and L, and
+            # its rows [X, K22] of K = L^-1
+            _compiled._gather_output(Y[o], k, F, n, sr, si)
+            for t in range(n_shared_pairs, n_g_pairs):
+                _compiled._pair_series(sr, si, g_kind[t], g_a[t], g_b[t], Sr, Si)
                 _compiled._moments(Sr, Si, q_basis, g_off[t], g_nd[t], Er, Ei,
                                    Or, Oi, mr, mi)
-            for r in range(L):
-                for w in range(LANES):
-                    Sr[r, w] *= wt[r, w]
-                    Si[r, w] *= wt[r, w]
-            _compiled._moments(Sr, Si, q_basis, w_off[t], w_nd[t], Er, Ei, Or,
-                               Oi, mwr, mwi)
-        _compiled._gram(mr, mi, g_ptr, g_mom, g_coef, g_conj, g_const, g_rhs_ptr,
-                        g_rhs_mom, g_rhs_coef, Hr, Hi, gr, gi)
-        _compiled._cholesky(Hr, Hi, scale2, ok, tol2, p)
-        _compiled._gram(mwr, mwi, w_ptr, w_mom, w_coef, w_conj, w_const, w_rhs_ptr,
-                        w_rhs_mom, w_rhs_coef, Wr, Wi, gr, gi)
-        # K = L^-1 (lower), then G^-1 = K^H K, lower triangle in C
-        _compiled._tail_inverse(Hr, Hi, p, p, Kr, Ki)
-        for c in range(p):
-            for d in range(c + 1):
-                for w in range(LANES):
-                    acc_r[w] = 0.0
-                    acc_i[w] = 0.0
-                for i in range(c, p):
-                    for w in range(LANES):
-                        # conj(K[i,c]) K[i,d]
-                        kcr = Kr[i, c, w]
-                        kci = Ki[i, c, w]
-                        acc_r[w] += kcr * Kr[i, d, w] + kci * Ki[i, d, w]
-                        acc_i[w] += kcr * Ki[i, d, w] - kci * Kr[i, d, w]
-                for w in range(LANES):
-                    Cr[c, d, w] = acc_r[w]
-                    Ci[c, d, w] = acc_i[w]
-        # tr(G^-1 H) from the lower triangles of both (Hermitian)
-        for w in range(LANES):
-            acc_r[w] = 0.0
-        for c in range(p):
-            rc = c * (c + 1) // 2
+            _compiled._gram_entries(mr, mi, g_ptr, g_mom, g_coef, g_conj,
+                                    g_const, shared_entries, g_const.shape[0],
+                                    Hr, Hi)
             for w in range(LANES):
-                acc_r[w] += Cr[c, c, w] * Wr[rc + c, w]
-            for d in range(c):
+                ok[w] = ok_shared[w]
+            _compiled._cholesky_rows(Hr, Hi, scale2, ok, tol2, n_shared, p)
+            _inverse_rows(Hr, Hi, n_shared, p, Kr, Ki, acc_r, acc_i)
+            # 3. G^-1 = K^H K (lower): the shared K11^H K11 plus the sums
+            # over this row's rows of K
+            _lower_gram_rows(Kr, Ki, n_shared, p, p, Cr, Ci, acc_r, acc_i)
+            for e in range(n_packed_shared):  # (the leading block, packed)
                 for w in range(LANES):
-                    acc_r[w] += 2.0 * (Cr[c, d, w] * Wr[rc + d, w]
-                                       + Ci[c, d, w] * Wi[rc + d, w])
-        for w in range(LANES):
-            row = first + w
-            if row < B:
-                trace[row] = acc_r[w]
-                ok_out[row] = ok[w]
-        for w in range(LANES):
-            row = first + w
-            if row < B:
-                total = 0.0
-                lo = np.inf
-                hi = 0.0
+                    Cr[e, w] += Sh_r[e, w]
+                    Ci[e, w] += Sh_i[e, w]
+            # 4. H = A^H diag(w) A with this row's w(r) = |e(x_r)|^2: every
+            # pair series times w before its moments
+            _denominator_weight(den[o], powers, first, wt)
+            for t in range(w_kind.shape[0]):
+                _compiled._pair_series(sr, si, w_kind[t], w_a[t], w_b[t], Sr, Si)
                 for r in range(L):
-                    total += wt[r, w]
-                    lo = min(lo, wt[r, w])
-                    hi = max(hi, wt[r, w])
-                wsum[row] = P * total
-                wmin[row] = lo
-                wmax[row] = hi
-        # [G^-1 H G^-1] at the centre bands: z_b = H g_b, lead[a, b] = g_a^H z_b
+                    for w in range(LANES):
+                        Sr[r, w] *= wt[r, w]
+                        Si[r, w] *= wt[r, w]
+                _compiled._moments(Sr, Si, q_basis, w_off[t], w_nd[t], Er, Ei,
+                                   Or, Oi, mwr, mwi)
+            _compiled._gram_entries(mwr, mwi, w_ptr, w_mom, w_coef, w_conj,
+                                    w_const, 0, w_const.shape[0], Wr, Wi)
+            # 5. the outputs of the real lanes
+            _trace_of_product(Cr, Ci, Wr, Wi, p, acc_r)
+            for w in range(LANES):
+                row = first + w
+                if row < B:
+                    trace[o, row] = acc_r[w]
+                    ok_out[o, row] = ok[w]
+                    total = 0.0
+                    lo = np.inf
+                    hi = 0.0
+                    for r in range(L):
+                        total += wt[r, w]
+                        lo = min(lo, wt[r, w])
+                        hi = max(hi, wt[r, w])
+                    wsum[o, row] = P * total
+                    wmin[o, row] = lo
+                    wmax[o, row] = hi
+            _band_sandwich(Cr, Ci, Wr, Wi, p, band_first, n_bands, first, B,
+                           cbr, cbi, ybr, ybi, qr, qi, lead[o])
+
+
+def _denominator_weight_py(den, powers, first, wt):
+    """``wt[r, w] = |e(x_r)|^2`` of the windows ``first + w`` (the last window
+    repeated in unused lanes); ``den`` of shape (B, R_e, 2)."""
+    B = den.shape[0]
+    L, Re = powers.shape
+    for r in range(L):
+        for w in range(LANES):
+            row = min(first + w, B - 1)
+            er = 1.0
+            ei = 0.0
+            for s in range(Re):
+                er += den[row, s, 0] * powers[r, s]
+                ei += den[row, s, 1] * powers[r, s]
+            wt[r, w] = er * er + ei * ei
+
+
+def _inverse_rows_py(Hr, Hi, lo, hi, Kr, Ki, acc_r, acc_i):
+    """Rows ``lo..hi-1`` of ``K = L^-1`` (``L`` packed lower, inverse pivots
+    in ``Hi`` at the diagonal; ``K`` packed lower), rows ``0..lo-1`` of ``K``
+    given: ``K_ii = 1 / L_ii``, ``K_ic = -(sum_{m=c}^{i-1} L_im K_mc) /
+    L_ii`` (the sums of :func:`lrmfrf._compiled._tail_inverse`, in the same
+    order)."""
+    for i in range(lo, hi):
+        ri = i * (i + 1) // 2
+        inv = ri + i
+        for c in range(i):
+            for w in range(LANES):
+                acc_r[w] = 0.0
+                acc_i[w] = 0.0
+            for m in range(c, i):
+                mc = m * (m + 1) // 2 + c
+                for w in range(LANES):
+                    lr = Hr[ri + m, w]
+                    li = Hi[ri + m, w]
+                    acc_r[w] += lr * Kr[mc, w] - li * Ki[mc, w]
+                    acc_i[w] += lr * Ki[mc, w] + li * Kr[mc, w]
+            for w in range(LANES):
+                Kr[ri + c, w] = -acc_r[w] * Hi[inv, w]
+                Ki[ri + c, w] = -acc_i[w] * Hi[inv, w]
+        for w in range(LANES):
+            Kr[inv, w] = Hi[inv, w]
+            Ki[inv, w] = 0.0
+
+
+def _lower_gram_rows_py(Kr, Ki, lo, hi, n, Cr, Ci, acc_r, acc_i):
+    """Lower triangle (packed) of ``sum_{i=lo}^{hi-1} conj(K[i, :n])^T
+    K[i, :n]`` (``K`` lower triangular, packed: the sum for ``C[c, d]``,
+    ``c >= d``, starts at ``i = max(lo, c)``)."""
+    for c in range(n):
+        for d in range(c + 1):
+            for w in range(LANES):
+                acc_r[w] = 0.0
+                acc_i[w] = 0.0
+            for i in range(max(lo, c), hi):
+                ri = i * (i + 1) // 2
+                for w in range(LANES):
+                    # conj(K[i,c]) K[i,d]
+                    kcr = Kr[ri + c, w]
+                    kci = Ki[ri + c, w]
+                    acc_r[w] += kcr * Kr[ri + d, w] + kci * Ki[ri + d, w]
+                    acc_i[w] += kcr * Ki[ri + d, w] - kci * Kr[ri + d, w]
+            e = c * (c + 1) // 2 + d
+            for w in range(LANES):
+                Cr[e, w] = acc_r[w]
+                Ci[e, w] = acc_i[w]
+
+
+def _trace_of_product_py(Cr, Ci, Wr, Wi, p, acc_r):
+    """``acc_r = tr(C W)`` from the packed lower triangles of the Hermitian
+    ``C`` and ``W``."""
+    for w in range(LANES):
+        acc_r[w] = 0.0
+    for c in range(p):
+        rc = c * (c + 1) // 2
+        for w in range(LANES):
+            acc_r[w] += Cr[rc + c, w] * Wr[rc + c, w]
+        for d in range(c):
+            for w in range(LANES):
+                acc_r[w] += 2.0 * (Cr[rc + d, w] * Wr[rc + d, w]
+                                   + Ci[rc + d, w] * Wi[rc + d, w])
+
+
+def _band_sandwich_py(Cr, Ci, Wr, Wi, p, band_first, n_bands, first, B, cbr, cbi,
+                      ybr, ybi, qr, qi, lead):
+    """``lead[first + w] = C_b^H W C_b``, ``C_b = C[:, band_first:band_first +
+    n_bands]`` (``C`` and ``W`` Hermitian, packed lower) from the lower
+    triangle of ``W`` only: with ``W = W' + W'^H``, ``W'`` its strict lower
+    triangle plus half its diagonal, ``Y = W' C_b`` (``p^2 n_bands / 2``
+    products) and ``Q = C_b^H Y``, the sandwich is ``Q + Q^H``."""
+    for j in range(p):  # C_b from the lower triangle of C
         for b in range(n_bands):
-            cb = off + b
+            cb = band_first + b
+            if j >= cb:
+                e = j * (j + 1) // 2 + cb
+                for w in range(LANES):
+                    cbr[j, b, w] = Cr[e, w]
+                    cbi[j, b, w] = Ci[e, w]
+            else:
+                e = cb * (cb + 1) // 2 + j
+                for w in range(LANES):
+                    cbr[j, b, w] = Cr[e, w]
+                    cbi[j, b, w] = -Ci[e, w]
+    for i in range(p):
+        ri = i * (i + 1) // 2
+        for b in range(n_bands):
+            for w in range(LANES):
+                half = 0.5 * Wr[ri + i, w]  # the diagonal of W is real
+                ybr[i, b, w] = half * cbr[i, b, w]
+                ybi[i, b, w] = half * cbi[i, b, w]
+        for j in range(i):
+            for b in range(n_bands):
+                for w in range(LANES):
+                    hr = Wr[ri + j, w]
+                    hi = Wi[ri + j, w]
+                    vr = cbr[j, b, w]
+                    vi = cbi[j, b, w]
+                    ybr[i, b, w] += hr * vr - hi * vi
+                    ybi[i, b, w] += hr * vi + hi * vr
+    for a in range(n_bands):
+        for b in range(n_bands):
+            for w in range(LANES):
+                qr[a, b, w] = 0.0
+                qi[a, b, w] = 0.0
             for i in range(p):
                 for w in range(LANES):
-                    acc_r[w] = 0.0
-                    acc_i[w] = 0.0
-                for j in range(p):
-                    if i >= j:
-                        e = i * (i + 1) // 2 + j
-                        sgn = 1.0
-                    else:
-                        e = j * (j + 1) // 2 + i
-                        sgn = -1.0
-                    if j >= cb:
-                        jr = j
-                        jc = cb
-                        tg = 1.0
-                    else:
-                        jr = cb
-                        jc = j
-                        tg = -1.0
-                    for w in range(LANES):
-                        hr = Wr[e, w]
-                        hi_ = sgn * Wi[e, w]
-                        vr = Cr[jr, jc, w]
-                        vi = tg * Ci[jr, jc, w]
-                        acc_r[w] += hr * vr - hi_ * vi
-                        acc_i[w] += hr * vi + hi_ * vr
-                for w in range(LANES):
-                    Zr[i, w] = acc_r[w]
-                    Zi[i, w] = acc_i[w]
+                    # conj(C_b[i, a]) Y[i, b]
+                    vr = cbr[i, a, w]
+                    vi = cbi[i, a, w]
+                    qr[a, b, w] += vr * ybr[i, b, w] + vi * ybi[i, b, w]
+                    qi[a, b, w] += vr * ybi[i, b, w] - vi * ybr[i, b, w]
+    for w in range(LANES):
+        row = first + w
+        if row < B:
             for a in range(n_bands):
-                ca = off + a
-                for w in range(LANES):
-                    acc_r[w] = 0.0
-                    acc_i[w] = 0.0
-                for i in range(p):
-                    # conj(G^-1[i, ca]) = G^-1[ca, i]
-                    if ca >= i:
-                        tg = 1.0
-                        ir = ca
-                        ic = i
-                    else:
-                        tg = -1.0
-                        ir = i
-                        ic = ca
-                    for w in range(LANES):
-                        vr = Cr[ir, ic, w]
-                        vi = tg * Ci[ir, ic, w]
-                        acc_r[w] += vr * Zr[i, w] - vi * Zi[i, w]
-                        acc_i[w] += vr * Zi[i, w] + vi * Zr[i, w]
-                for w in range(LANES):
-                    row = first + w
-                    if row < B:
-                        lead[row, a, b, 0] = acc_r[w]
-                        lead[row, a, b, 1] = acc_i[w]
+                for b in range(n_bands):
+                    lead[row, a, b, 0] = qr[a, b, w] + qr[b, a, w]
+                    lead[row, a, b, 1] = qi[a, b, w] - qi[b, a, w]
 
 
 if _compiled.AVAILABLE:  # pragma: no branch
-    _eiv_range = njit(cache=True, fastmath={"contract"}, nogil=True,
-                      error_model="numpy")(_eiv_range_py)
+    _opts = {"cache": True, "fastmath": {"contract"}, "nogil": True,
+             "error_model": "numpy"}
+    _denominator_weight = njit(**_opts)(_denominator_weight_py)
+    _inverse_rows = njit(**_opts)(_inverse_rows_py)
+    _lower_gram_rows = njit(**_opts)(_lower_gram_rows_py)
+    _trace_of_product = njit(**_opts)(_trace_of_product_py)
+    _band_sandwich = njit(**_opts)(_band_sandwich_py)
+    _eiv_range = njit(**_opts)(_eiv_range_py)
 
 
 def eiv_windows(
@@ -247,26 +351,31 @@ def eiv_windows(
     fallback_tol: float,
     n_threads: int | None = None,
 ):
-    """Errors-in-variables terms of every window (compiled, threaded).
+    """Errors-in-variables terms of every window and output row (compiled,
+    threaded).
 
     Parameters
     ----------
-    U : ndarray of shape (P, n_u, N), complex
-    Y : ndarray of shape (P, M), complex
+    U : ndarray of shape (P, N) or (P, n_u, N), complex
+    Y : ndarray of shape (P, M) or (P, n_rows, M), complex
+        One output row, or ``n_rows`` rows whose windows share the input and
+        transient columns.
     slow_bins : ndarray of shape (B,), int
-    den : ndarray of shape (B, R_e), complex
-        Denominator coefficients ``e_1..e_Re`` of each window (finite).
+    den : ndarray of shape (B, R_e) or (n_rows, B, R_e), complex
+        Denominator coefficients ``e_1..e_Re`` of each window (finite) of
+        each row.
     powers : ndarray of shape (2n+1, R_e)
         ``x_r^s``, ``s = 1..R_e``.
     weights, col_base : ndarray
-        Internal column basis (see :func:`lrmfrf._compiled.moment_tables`).
+        Internal column basis with the denominator columns (``col_base ==
+        n_bands + P``) last (see :func:`lrmfrf.solvers._kernel_tables`).
     n_bands : int
-        Window-centre band columns (the first of the last ``n_centre``
-        internal columns).
+        Number of input bands ``F n_u``; the band columns are the first of
+        the ``n_centre`` columns before the denominator columns.
     n_centre : int
     tables, weighted_tables : dict
-        :func:`lrmfrf._compiled.moment_tables` without and with
-        ``weighted=True``.
+        :func:`lrmfrf._compiled.moment_tables` of ``weights`` and
+        ``col_base`` without and with ``weighted=True``.
     fallback_tol : float
         Equilibrated-pivot threshold of the Cholesky factor of ``G``.
     n_threads : int, optional
@@ -281,43 +390,71 @@ def eiv_windows(
         ``sum_r w_r`` over all ``P (2n+1)`` rows, and ``min``/``max`` of ``w``.
     ok : ndarray of shape (B,), bool
         False where the pivot check failed (the terms are then not reliable).
+
+    With ``Y`` of shape (P, n_rows, M) every result has a leading axis of
+    length ``n_rows``.
     """
     B, p = slow_bins.size, weights.shape[1]
+    P = U.shape[0]
     if U.ndim == 2:
         U = U[:, None, :]
-    lead = np.empty((B, n_bands, n_bands, 2))
-    trace = np.empty(B)
-    wsum = np.empty(B)
-    wmin = np.empty(B)
-    wmax = np.empty(B)
-    ok = np.empty(B, dtype=np.bool_)
+    one_row = Y.ndim == 2
+    rows_first = np.moveaxis(Y[:, None, :] if one_row else Y, 1, 0)  # (R, P, M)
+    R = rows_first.shape[0]
+    den = np.asarray(den, dtype=np.complex128)
+    if one_row:
+        den = den[None]
+    is_den = np.asarray(col_base) == n_bands + P
+    n_shared = p - int(np.count_nonzero(is_den))
+    if is_den[:n_shared].any():
+        raise ValueError(
+            "the denominator columns (col_base == n_bands + P) must come last; "
+            "use the tables of lrmfrf.solvers._kernel_tables"
+        )
     t, tw = tables, weighted_tables
-    den2 = np.ascontiguousarray(np.asarray(den, dtype=np.complex128)).view(np.float64)
-    den2 = den2.reshape(B, -1, 2)
+    n_g = t["pair_kind"].size
+    if not all(np.array_equal(t[key], tw[key][:n_g])
+               for key in ("pair_kind", "pair_a", "pair_b", "pair_nd")):
+        raise ValueError("tables and weighted_tables must be of the same layout")
+    # the pairs with -Y (data index F first, or against a transient) come last
+    with_y = (((t["pair_kind"] == _compiled._DATA_DATA) & (t["pair_a"] == n_bands))
+              | (t["pair_kind"] == _compiled._DATA_CONST))
+    n_shared_pairs = int(np.argmax(with_y)) if with_y.any() else with_y.size
+    lead = np.empty((R, B, n_bands, n_bands, 2))
+    trace = np.empty((R, B))
+    wsum = np.empty((R, B))
+    wmin = np.empty((R, B))
+    wmax = np.empty((R, B))
+    ok = np.empty((R, B), dtype=np.bool_)
+    den2 = np.ascontiguousarray(den).view(np.float64).reshape(R, B, -1, 2)
     args = (
-        _compiled._as_interleaved(U), _compiled._as_interleaved(Y),
+        _compiled._as_interleaved(U), _compiled._as_interleaved(rows_first),
         np.ascontiguousarray(slow_bins, dtype=np.int64), den2,
-        np.ascontiguousarray(powers, dtype=np.float64), t["data_index"],
-        int(n_bands), int(n_centre), int(n_bands), t["q_basis"],
-        t["pair_kind"], t["pair_a"], t["pair_b"], t["pair_nd"], t["pair_off"],
-        t["ent_ptr"], t["ent_mom"], t["ent_coef"], t["ent_conj"], t["ent_const"],
-        t["rhs_ptr"], t["rhs_mom"], t["rhs_coef"], int(t["n_moments"]),
+        np.ascontiguousarray(powers, dtype=np.float64), int(n_bands),
+        n_shared, n_shared_pairs, int(n_shared - n_centre), int(n_bands),
+        t["q_basis"], t["pair_kind"], t["pair_a"], t["pair_b"], t["pair_nd"],
+        t["pair_off"], t["ent_ptr"], t["ent_mom"], t["ent_coef"], t["ent_conj"],
+        t["ent_const"], int(t["n_moments"]),
         tw["pair_kind"], tw["pair_a"], tw["pair_b"], tw["pair_nd"], tw["pair_off"],
         tw["ent_ptr"], tw["ent_mom"], tw["ent_coef"], tw["ent_conj"],
-        tw["ent_const"], tw["rhs_ptr"], tw["rhs_mom"], tw["rhs_coef"],
-        int(tw["n_moments"]), int(p),
+        tw["ent_const"], int(tw["n_moments"]), int(p),
         float(fallback_tol) ** 2, lead, trace, wsum, wmin, wmax, ok,
     )
     n_groups = (B + LANES - 1) // LANES
+    threads = n_threads or numba.config.NUMBA_NUM_THREADS
+    # at least 4 tasks per thread when the groups allow (as solve_windows)
+    per_task = max(1, min(_GROUPS_PER_TASK, n_groups // (4 * threads)))
     tasks = [
-        (start, min(n_groups, start + _GROUPS_PER_TASK))
-        for start in range(0, n_groups, _GROUPS_PER_TASK)
+        (start, min(n_groups, start + per_task))
+        for start in range(0, n_groups, per_task)
     ]
-    threads = min(n_threads or numba.config.NUMBA_NUM_THREADS, len(tasks))
+    threads = min(threads, len(tasks))
     if threads <= 1:
         if n_groups:
             _eiv_range(*args, 0, n_groups)
     else:
         with ThreadPoolExecutor(threads) as pool:
             list(pool.map(lambda task: _eiv_range(*args, *task), tasks))
-    return lead.view(np.complex128)[..., 0], trace, wsum, wmin, wmax, ok
+    lead = lead.view(np.complex128)[..., 0]
+    out = (lead, trace, wsum, wmin, wmax, ok)
+    return tuple(part[0] for part in out) if one_row else out

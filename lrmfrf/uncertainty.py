@@ -68,7 +68,7 @@ from .local_models import (
 from .solvers import (
     CHOLESKY_FALLBACK_TOL,
     RANK_TOL,
-    _compiled_tables,
+    _kernel_tables,
     qr_chunk_size,
     resolve_backend,
 )
@@ -81,6 +81,7 @@ __all__ = [
     "calibrated_refined_fit",
     "iter_calibrated_fits",
     "eiv_terms",
+    "eiv_terms_rows",
     "check_std_method",
     "VarianceTerms",
     "variance_terms",
@@ -382,8 +383,9 @@ def check_std_method(value, name: str = "std_method") -> str:
 
 @functools.lru_cache(maxsize=16)
 def _weighted_tables(layout: LocalModelLayout) -> dict:
-    """Row-weighted moment tables of a layout (for ``A^H diag(w) A``)."""
-    weights, col_base, _ = _compiled_tables(layout)
+    """Row-weighted moment tables (for ``A^H diag(w) A``) in the column order
+    of :func:`lrmfrf.solvers._kernel_tables` (the denominator columns last)."""
+    weights, col_base, _, _ = _kernel_tables(layout)
     return _compiled.moment_tables(
         weights, col_base, layout.n_bands, layout.n_experiments, weighted=True
     )
@@ -404,7 +406,8 @@ def eiv_terms(
     when the backend resolves to ``"numba"``; windows whose Gram matrix fails
     its pivot check there, and every window with ``backend="numpy"``, go
     through :func:`variance_terms` (the dense regressor). Both give the same
-    terms up to round-off.
+    terms up to round-off. :func:`eiv_terms_rows` does several output rows at
+    once.
 
     Parameters
     ----------
@@ -422,17 +425,64 @@ def eiv_terms(
     eiv_lead : ndarray of shape (B, n_bands, n_bands), complex
     eiv_trace : ndarray of shape (B,)
     """
+    lead, trace = eiv_terms_rows(U, Y[:, None], layout, theta[None], slow_bins,
+                                 backend=backend)
+    return lead[0], trace[0]
+
+
+def eiv_terms_rows(
+    U: np.ndarray,
+    Y: np.ndarray,
+    layout: LocalModelLayout,
+    theta: np.ndarray,
+    slow_bins: np.ndarray,
+    *,
+    backend: str = "auto",
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`eiv_terms` of several output rows of the same windows.
+
+    The compiled kernel computes what does not depend on the output row (the
+    factor of the input and transient block of ``A^H A`` and the Gram of its
+    inverse) once per window for all rows (see
+    :mod:`lrmfrf._compiled_uncertainty`); each row's terms equal
+    :func:`eiv_terms` of that row up to round-off.
+
+    Parameters
+    ----------
+    U : ndarray of shape (P, n_u N), complex
+    Y : ndarray of shape (P, n_rows, M), complex
+        Output rows (each its own local problem, its own denominator).
+    layout : LocalModelLayout
+    theta : ndarray of shape (n_rows, B, n_params), complex
+        Closed-form parameters of each row; only the denominator columns are
+        read (NaN rows give NaN terms).
+    slow_bins : ndarray of shape (B,), int
+    backend : {"auto", "numpy", "numba"}, default "auto"
+
+    Returns
+    -------
+    eiv_lead : ndarray of shape (n_rows, B, n_bands, n_bands), complex
+    eiv_trace : ndarray of shape (n_rows, B)
+    """
     slow_bins = np.asarray(slow_bins, dtype=int)
-    B = slow_bins.size
+    theta = np.asarray(theta)
+    n_rows, B = Y.shape[1], slow_bins.size
+    if theta.shape[:2] != (n_rows, B):
+        raise ValueError(
+            f"`theta` must have shape (n_rows, B, n_params) = ({n_rows}, {B}, "
+            f"{layout.n_params}); got {theta.shape} instead."
+        )
     backend = resolve_backend(backend, B, layout.n_params)
     if backend != "numba":
-        terms = variance_terms(U, Y, layout, theta, slow_bins, with_hc=False)
-        return terms.eiv_lead, terms.eiv_trace
-    good = np.all(np.isfinite(theta), axis=1)
-    den = np.where(good[:, None], theta[:, layout.den_columns], 0.0)
+        parts = [variance_terms(U, Y[:, o], layout, theta[o], slow_bins,
+                                with_hc=False) for o in range(n_rows)]
+        return (np.stack([terms.eiv_lead for terms in parts]),
+                np.stack([terms.eiv_trace for terms in parts]))
+    good = np.all(np.isfinite(theta), axis=2)
+    den = np.where(good[:, :, None], theta[:, :, layout.den_columns], 0.0)
     _, x = window_offsets(layout.half_window)
     powers = x[:, None] ** np.arange(1, layout.den_degree + 1)
-    weights, col_base, tables = _compiled_tables(layout)
+    weights, col_base, tables, _ = _kernel_tables(layout)
     nb = layout.n_bands
     lead, hw_trace, w_sum, w_min, w_max, ok = _compiled_uncertainty.eiv_windows(
         U.reshape(U.shape[0], layout.n_inputs, -1), Y, slow_bins, den, powers,
@@ -443,16 +493,24 @@ def eiv_terms(
     # as variance_terms: the trace within q min w .. q max w
     q = max(layout.dof, 0)
     trace = np.clip(w_sum - hw_trace, q * w_min, q * w_max)
-    redo = np.flatnonzero(good & ~ok)
+    # windows whose pivot check failed, or whose band block (S^H diag(w) S,
+    # positive semi-definite) has a negative diagonal: round-off of a nearly
+    # singular G (e.g. a rank-deficient denominator block on noise-free data)
+    # dominates there; the dense route checks its inverse and falls back to
+    # the pseudo-inverse
+    negative = np.any(np.real(np.diagonal(lead, axis1=-2, axis2=-1)) < 0, axis=-1)
+    redo = good & (~ok | negative)
     chunk = qr_chunk_size(layout)
     # (threadpoolctl inspects the loaded libraries on entry: only when needed)
-    with _single_threaded_blas() if redo.size else contextlib.nullcontext():
-        for start in range(0, redo.size, chunk):
-            part = redo[start : start + chunk]
-            terms = _terms_of_chunk(U, Y, layout, theta[part], slow_bins[part],
-                                    False)
-            lead[part] = terms[1]
-            trace[part] = terms[4]
+    with _single_threaded_blas() if redo.any() else contextlib.nullcontext():
+        for o, windows in enumerate(redo):
+            windows = np.flatnonzero(windows)
+            for start in range(0, windows.size, chunk):
+                part = windows[start : start + chunk]
+                terms = _terms_of_chunk(U, Y[:, o], layout, theta[o, part],
+                                        slow_bins[part], False)
+                lead[o, part] = terms[1]
+                trace[o, part] = terms[4]
     lead[~good] = np.nan
     trace[~good] = np.nan
     return lead, trace
@@ -579,16 +637,21 @@ def iter_calibrated_fit_rows(
         U, Y, bins = spectra.window_spectra(start, stop, layout.half_window,
                                             list(range(n_y)))
         U = scale_by_power_of_two(U, -u_exponent)
+        Y = np.stack([scale_by_power_of_two(Y[:, o], -y_exponents[o])
+                      for o in range(n_y)], axis=1)
+        # the terms of all rows in one pass (shared input and transient block)
+        leads, traces = eiv_terms_rows(
+            U, Y, layout, np.stack([fit.theta for fit in fits]), bins,
+            backend=backend,
+        )
+        del U, Y
         out = []
-        for o, (fit, y_exponent) in enumerate(zip(fits, y_exponents, strict=True)):
-            Y_o = scale_by_power_of_two(Y[:, o], -y_exponent)
-            lead, trace = eiv_terms(U, Y_o, layout, fit.theta, bins,
-                                    backend=backend)
+        for fit, y_exponent, lead, trace in zip(fits, y_exponents, leads, traces,
+                                                strict=True):
             rss = scale_by_power_of_two(fit.rss, -2 * y_exponent)
             cov = _eiv_covariance(lead, trace, rss, layout)
             cov = scale_by_power_of_two(cov, 2 * (y_exponent - u_exponent))
             out.append(_with_covariance(fit, cov))
-        del U, Y
         yield start, out
 
 

@@ -18,17 +18,21 @@ import pytest
 
 from lrmfrf import LRMBeyondNyquist
 from lrmfrf._compiled import AVAILABLE
+from lrmfrf._compiled_uncertainty import eiv_windows
 from lrmfrf.local_models import dft, fit_local_models
 from lrmfrf.plants import mimo_wafer_stage, random_stage
 from lrmfrf.signals import multisine, orthogonal_multisines
 from lrmfrf.simulate import simulate
+from lrmfrf.solvers import CHOLESKY_FALLBACK_TOL, _kernel_tables
 from lrmfrf.uncertainty import (
+    _weighted_tables,
     band_covariance,
     calibrated_local_fit,
     eiv_terms,
+    eiv_terms_rows,
     variance_terms,
 )
-from lrmfrf.windows import LocalModelLayout, local_regressor
+from lrmfrf.windows import LocalModelLayout, local_regressor, window_offsets
 
 pytestmark = pytest.mark.skipif(not AVAILABLE, reason="needs numba")
 
@@ -170,3 +174,107 @@ def test_mimo_rows_stream_the_numpy_route():
         for i in range(2):
             err = np.abs(est.frf_std_[o, i, k] / ref[:, i * 3] - 1)
             assert np.median(err) <= 1e-10 and np.max(err) <= 1e-7, (o, i)
+
+
+# --- the row-shared pass (eiv_terms_rows) -----------------------------------------
+
+
+def _mimo_spectra(n_u, n_y, P, half_window, seed=0):
+    """DFTs of P experiments through n_y x n_u channels of the MIMO stage
+    (45 dB): U (P, n_u N), Y (P, n_y M), M = 400, and the layout."""
+    system = mimo_wafer_stage().G[0:n_y, 0:n_u]
+    rng = np.random.default_rng(seed)
+    u = np.stack([np.stack([multisine(1200, rms=1.44, rng=rng) for _ in range(n_u)])
+                  for _ in range(P)])
+    y = np.stack([simulate(system, u[p], 3, snr_db=45, rng=rng).y_l
+                  for p in range(P)])
+    U = np.stack([np.concatenate([dft(u[p, i]) for i in range(n_u)])
+                  for p in range(P)])
+    Y = np.stack([np.stack([dft(y[p, o]) for o in range(n_y)]) for p in range(P)])
+    layout = LocalModelLayout(F=3, n_experiments=P, n_inputs=n_u,
+                              half_window=half_window, num_degree=2,
+                              transient_degree=2, den_degree=2)
+    return U, Y, layout
+
+
+def _lead_error(lead, reference):
+    """Largest error of a band block relative to ``sqrt(ref_aa ref_bb)``."""
+    scale = np.sqrt(_diag(reference))
+    err = np.abs(lead - reference) / (scale[:, :, None] * scale[:, None, :])
+    return np.max(err)
+
+
+def _row_fits(U, Y, layout):
+    return [fit_local_models(U, Y[:, o], layout) for o in range(Y.shape[1])]
+
+
+@pytest.mark.parametrize(
+    ("n_u", "n_y", "P", "half_window"),
+    [(2, 2, 2, 12), (2, 2, 1, 18), (3, 1, 1, 20), (1, 3, 1, 12), (1, 3, 2, 12)],
+)
+def test_row_shared_terms_equal_per_row_and_numpy(n_u, n_y, P, half_window):
+    """All output rows in one pass (the input and transient block shared):
+    each row's terms are those of eiv_terms on that row alone (the same
+    arithmetic: equal exactly) and of the dense numpy route to 1e-10
+    relative (den_degree 2, well conditioned; measured <= 6.5e-11 for the
+    band block, 1.3e-11 for the trace)."""
+    U, Y, layout = _mimo_spectra(n_u, n_y, P, half_window)
+    fits = _row_fits(U, Y, layout)
+    bins = fits[0].slow_bins
+    theta = np.stack([fit.theta for fit in fits])
+    lead, trace = eiv_terms_rows(U, Y, layout, theta, bins, backend="numba")
+    assert lead.shape == (n_y, bins.size, layout.n_bands, layout.n_bands)
+    assert trace.shape == (n_y, bins.size)
+    for o in range(n_y):
+        one_lead, one_trace = eiv_terms(U, Y[:, o], layout, theta[o], bins,
+                                        backend="numba")
+        np.testing.assert_array_equal(lead[o], one_lead)
+        np.testing.assert_array_equal(trace[o], one_trace)
+        dense = variance_terms(U, Y[:, o], layout, theta[o], bins, with_hc=False)
+        np.testing.assert_allclose(trace[o], dense.eiv_trace, rtol=1e-10)
+        assert _lead_error(lead[o], dense.eiv_lead) <= 1e-10, o
+
+
+def test_row_shared_terms_take_the_dense_fallback_per_row():
+    """A row whose output is zero over a stretch of slow bins has exactly
+    zero denominator columns there: the kernel's pivot check fails for that
+    row only (the other rows keep the compiled terms) and its windows are
+    redone by the dense route, which gives them unit pivots."""
+    U, Y, layout = _mimo_spectra(2, 2, 2, 12)
+    Y = Y.copy()
+    Y[:, 1, 60:100] = 0.0
+    Y[:, 1, -99:-59] = 0.0  # (the conjugate-symmetric bins)
+    fits = _row_fits(U, Y, layout)
+    bins = fits[0].slow_bins
+    theta = np.stack([fit.theta for fit in fits])
+    weights, col_base, tables, _ = _kernel_tables(layout)
+    nb = layout.n_bands
+    _, x = window_offsets(layout.half_window)
+    *_, ok = eiv_windows(
+        U.reshape(2, 2, -1), Y, bins, theta[:, :, layout.den_columns],
+        x[:, None] ** np.arange(1, 3), weights, col_base, nb, nb + 2,
+        tables=tables, weighted_tables=_weighted_tables(layout),
+        fallback_tol=CHOLESKY_FALLBACK_TOL,
+    )
+    fallback = ~ok[1] & np.all(np.isfinite(theta[1]), axis=1)
+    assert ok[0].all() and 10 <= fallback.sum() <= 40
+    lead, trace = eiv_terms_rows(U, Y, layout, theta, bins, backend="numba")
+    for o in range(2):
+        dense = variance_terms(U, Y[:, o], layout, theta[o], bins, with_hc=False)
+        rows = fallback if o == 1 else slice(None)
+        np.testing.assert_allclose(trace[o, rows], dense.eiv_trace[rows],
+                                   rtol=1e-10)
+        assert _lead_error(lead[o, rows], dense.eiv_lead[rows]) <= 1e-10, o
+    # the dense route on exactly those windows: bit for bit
+    np.testing.assert_array_equal(trace[1, fallback],
+                                  variance_terms(U, Y[:, 1], layout,
+                                                 theta[1, fallback],
+                                                 bins[fallback],
+                                                 with_hc=False).eiv_trace)
+
+
+def test_row_shared_terms_reject_theta_of_another_shape():
+    U, Y, layout = _mimo_spectra(2, 2, 2, 12)
+    fits = _row_fits(U, Y, layout)
+    with pytest.raises(ValueError, match=r"`theta` must have shape \(n_rows, B"):
+        eiv_terms_rows(U, Y, layout, fits[0].theta, fits[0].slow_bins)
