@@ -302,3 +302,46 @@ def test_layout_tables_give_the_changed_basis_gram():
     H = gram(sk["weights"], sk["col_base"])
     G = gram(sk["layout_weights"], sk["layout_col_base"])
     np.testing.assert_allclose(G, S @ H @ S.T, rtol=0, atol=1e-11 * np.abs(G).max())
+
+
+def test_lm_repacking_leaves_every_window_unchanged(monkeypatch):
+    """Windows still active after some LM iterations are packed densely into
+    new lane groups (``_LM_STAGES``): a window's LM iterates do not depend on
+    the lane it sits in nor on its neighbours, and its model is a function of
+    its estimate alone, so the results with packing after iterations 1, 2, 3,
+    7 and 20 equal, bit for bit, those of lane groups that run all 50
+    iterations. Each stage has windows to pack (checked on the number of
+    windows still active after each)."""
+    from lrmfrf import _compiled_refine
+    from lrmfrf.plants import wafer_stage
+
+    U, Y = _stage_records(wafer_stage().G_y4, 3, 1500 * 3, seed=5)
+    layout = LocalModelLayout(F=3, **PAPER)
+    closed = fit_local_models(U, Y, layout)
+    resumed = []
+    lm_range = _compiled_refine._lm_range
+
+    def spy(*args):
+        resumed.append(args[41])  # the stage's first iteration
+        return lm_range(*args)
+
+    monkeypatch.setattr(_compiled_refine, "_lm_range", spy)
+    results = {}
+    for stages in ((), (1, 2, 3, 7, 20)):
+        monkeypatch.setattr(_compiled_refine, "_LM_STAGES", stages)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            results[stages] = refine_local_models(
+                U, Y, layout, closed, lm_iterations=50, backend="numba"
+            )
+    ref, new = results.values()
+    assert set(resumed) == {1, 2, 3, 7, 20}
+    assert new.lm_iterations == ref.lm_iterations == 50
+    assert 0 < np.count_nonzero(new.converged) < new.converged.size
+    for name in ("theta", "system", "rss", "system_var"):
+        np.testing.assert_array_equal(
+            getattr(new.local_fit, name), getattr(ref.local_fit, name), err_msg=name
+        )
+    np.testing.assert_array_equal(new.converged, ref.converged)
+    np.testing.assert_array_equal(new.guarded, ref.guarded)
+    np.testing.assert_allclose(new.cost_history, ref.cost_history, rtol=1e-13)
