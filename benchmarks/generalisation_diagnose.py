@@ -75,11 +75,14 @@ def run_record(job: tuple) -> dict:
     ----------
     job : tuple
         ``(seed, loop, effect, repeat, snr_db, n_experiments,
-        calibration_runs, options)`` with ``repeat`` in 0..3 (another noise
-        and input draw) and ``options`` a dict of extra ``diagnose`` keywords.
+        calibration_runs, options, open_experiment)`` with ``repeat`` in 0..3
+        (another noise and input draw), ``options`` a dict of extra
+        ``diagnose`` keywords and ``open_experiment`` the keywords of
+        ``hidden_effect_experiment`` for an open-loop record
+        (:data:`OPEN_LOOP_EXPERIMENT` or ``{}`` for a flat force from rest).
     """
     (seed, loop, effect, repeat, snr_db, n_experiments, calibration_runs,
-     options) = job
+     options, open_experiment) = job
     import warnings
 
     from lrmfrf.discrepancy import diagnose
@@ -94,7 +97,7 @@ def run_record(job: tuple) -> dict:
         None if effect == "none" else effect, rng=record_seed, stage=stage,
         loop=loop, F=draw.downsampling_factor, snr_db=snr_db,
         n_experiments=n_experiments, min_gap=0.0,
-        **(OPEN_LOOP_EXPERIMENT if loop == "open" else {}),
+        **(open_experiment if loop == "open" else {}),
     )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -104,7 +107,8 @@ def run_record(job: tuple) -> dict:
                 sample_time=experiment.sample_time,
                 controller=experiment.controller,
                 calibration_runs=calibration_runs, rng=record_seed,
-                steady_state=loop == "open" and bool(OPEN_LOOP_EXPERIMENT),
+                steady_state=(loop == "open"
+                              and open_experiment.get("steady_state", False)),
                 **options,
             )
         except (ValueError, RuntimeError) as exc:  # reported, not hidden
@@ -131,7 +135,7 @@ def run_record(job: tuple) -> dict:
 def diagnose_table(seeds, *, loops=LOOPS, effects=EFFECTS, snr_db: float = 40.0,
                    n_experiments: int = 1, calibration_runs: int = 10,
                    workers: int = 1, options: dict | None = None,
-                   null_repeats: int = 3) -> list[dict]:
+                   null_repeats: int = 3, open_flat: bool = False) -> list[dict]:
     """Diagnose hidden-effect records on random stages; one row per record.
 
     Parameters
@@ -155,6 +159,10 @@ def diagnose_table(seeds, *, loops=LOOPS, effects=EFFECTS, snr_db: float = 40.0,
         Records with nothing hidden per stage and loop (1-4; each with its
         own input and noise), so that the false-alarm rate rests on more
         records than one per stage.
+    open_flat : bool, default False
+        Open-loop records with a flat force from rest instead of
+        :data:`OPEN_LOOP_EXPERIMENT` (passed with each job, so that worker
+        processes see it whatever their start method).
 
     Returns
     -------
@@ -166,7 +174,8 @@ def diagnose_table(seeds, *, loops=LOOPS, effects=EFFECTS, snr_db: float = 40.0,
     if not 1 <= null_repeats <= 4:
         raise ValueError(f"`null_repeats` must be in 1..4; got {null_repeats}.")
     jobs = [(int(seed), loop, effect, repeat, snr_db, n_experiments,
-             calibration_runs, dict(options or {}))
+             calibration_runs, dict(options or {}),
+             {} if open_flat else dict(OPEN_LOOP_EXPERIMENT))
             for seed in seeds for loop in loops for effect in effects
             for repeat in range(null_repeats if effect == "none" else 1)]
     if workers > 1:
@@ -271,13 +280,12 @@ def main(argv=None) -> list[dict]:
                         default="benchmarks/results/generalisation_diagnose.csv")
     args = parser.parse_args(argv)
     seeds = parse_seeds(args.seeds)
-    if args.open_flat:
-        OPEN_LOOP_EXPERIMENT.clear()
     start = time.perf_counter()
     rows = diagnose_table(seeds, loops=args.loops, effects=args.effects,
                           snr_db=args.snr, n_experiments=args.experiments,
                           calibration_runs=args.calibration_runs,
-                          workers=args.workers, null_repeats=args.null_repeats)
+                          workers=args.workers, null_repeats=args.null_repeats,
+                          open_flat=args.open_flat)
     print(f"{len(rows)} records on {len(seeds)} stages (seeds {args.seeds}) in "
           f"{time.perf_counter() - start:.0f} s; SNR {args.snr:g} dB, "
           f"P = {args.experiments}, {args.calibration_runs} calibration runs")

@@ -492,7 +492,7 @@ def periodic_state(
             "(lrmfrf.plants.wafer_stage(suspension=...))."
         )
     end = simulate(system, u_h, 1, sample_time=sample_time).x_final
-    n = u_h.shape[-1]
+    n = np.shape(u_h)[-1]
     return np.linalg.solve(np.eye(A.shape[0]) - np.linalg.matrix_power(A, n), end)
 
 
