@@ -149,3 +149,141 @@ def test_per_band_on_a_mimo_record_takes_one_setting_per_region():
     diag = np.moveaxis(diag, -1, 1)  # (n_y, n_u, K)
     ok = four.valid_
     np.testing.assert_allclose(diag[ok], four.frf_std_[ok], rtol=1e-12)
+
+
+# --- per slow bin, by the predicted std (bands=None) ------------------------------
+
+
+def test_smoothed_scores_read_the_mirrored_bins_at_both_ends():
+    """Slow bins 0..M//2: bin -k is bin k and bin k > M//2 is M - k, for even
+    and odd M (known answers by hand); an inf spreads over its neighbours."""
+    from lrmfrf.estimators._bands import smooth_scores
+
+    row = np.arange(6.0)[None]  # M = 10: bins 0..5
+    out = smooth_scores(row, 1, 10)
+    # bin 0: (1 + 0 + 1) / 3; bin 5: (4 + 5 + 4) / 3 (bin 6 is bin 4)
+    np.testing.assert_allclose(out[0], [2 / 3, 1, 2, 3, 4, 13 / 3], rtol=1e-15)
+    odd = smooth_scores(np.arange(5.0)[None], 1, 9)  # M = 9: bins 0..4, 5 is 4
+    np.testing.assert_allclose(odd[0, -1], (3 + 4 + 4) / 3, rtol=1e-15)
+    bad = row.copy()
+    bad[0, 2] = np.inf
+    assert np.array_equal(np.isinf(smooth_scores(bad, 1, 10)[0]),
+                          [False, True, True, True, False, False])
+
+
+def test_score_weights_favour_the_smallest_std_and_sum_to_one():
+    from lrmfrf.estimators._bands import score_weights
+
+    scores = np.array([[0.0, 0.0, np.inf, np.inf],
+                       [0.1, -0.1, 0.0, np.inf],
+                       [1.0, 0.0, 0.5, np.inf]])
+    w = score_weights(scores, 30.0)
+    np.testing.assert_allclose(w[:, :3].sum(axis=0), 1.0, rtol=1e-14)
+    # known answer: exp(-30 * 0.1) relative weight, and below the floor -> 0
+    np.testing.assert_allclose(w[1, 0] / w[0, 0], np.exp(-3.0), rtol=1e-14)
+    assert w[2, 0] == 0.0 and w[0, 2] == 0.0  # exp(-30) < 1e-6; inf
+    assert w[1, 2] == 1.0 - w[2, 2] and w[1, 2] > w[2, 2]
+    assert np.isnan(w[:, 3]).all()  # no candidate valid: no weights
+
+
+def test_std_scores_average_log_std_over_the_aliased_bins():
+    from types import SimpleNamespace
+
+    from lrmfrf.estimators._bands import std_scores
+
+    N, Fs = 60, 3  # M = 20
+    std = np.exp(np.arange(N // 2 + 1) / 10.0)
+    valid = np.ones(N // 2 + 1, dtype=bool)
+    valid[7] = False
+    est = SimpleNamespace(frf_std_=std, valid_=valid)
+    score = std_scores([est], N, Fs)[0]
+    # by hand: of the fast bins 0..30 (M = 20), slow bin 3 fixes 3 and 23
+    # (j mod 20 = 3) and 17 (j mod 20 = 17 = 20 - 3, its mirror)
+    np.testing.assert_allclose(score[3], np.log(std[[3, 17, 23]]).mean(),
+                               rtol=1e-14)
+    # slow bin 7 holds the invalid fast bin 7: inf (the candidate is out there)
+    assert np.isinf(score[7]) and np.isfinite(score[6])
+
+
+def test_per_bin_choice_with_one_candidate_is_that_fit(record):
+    u, y = record
+    grid = {"half_windows": (12,), "num_degrees": (2,), "den_degrees": (4,)}
+    glob = LRMBeyondNyquistCV(**grid).fit(u, y, F)
+    band = LRMBeyondNyquistCV(**grid, per_band=True).fit(u, y, F)
+    assert band.band_params_ == [glob.best_params_]
+    np.testing.assert_array_equal(band.band_weights_[:, glob.valid_[:M // 2 + 1]],
+                                  1.0)
+    np.testing.assert_array_equal(band.frf_, glob.frf_)
+    np.testing.assert_array_equal(band.frf_std_, glob.frf_std_)
+    assert not hasattr(band, "band_bounds_")
+
+
+def test_per_bin_choice_blends_with_weights_summing_to_one(record):
+    u, y = record
+    cv = LRMBeyondNyquistCV(**GRID, per_band=True).fit(u, y, F)
+    w = cv.band_weights_
+    assert w.shape == (len(cv.band_params_), M // 2 + 1)
+    np.testing.assert_allclose(w.sum(axis=0), 1.0, rtol=1e-12)
+    # frf_ is the weighted sum of the fits on the fast grid
+    from lrmfrf.estimators._bands import to_fast_grid
+
+    fast = np.stack([to_fast_grid(wi, N, F) for wi in w])
+    expect = sum(fw * est.frf_ for fw, est in zip(fast, cv.band_estimators_,
+                                                  strict=True))
+    ok = cv.valid_
+    np.testing.assert_allclose(cv.frf_[ok], expect[ok], rtol=1e-12)
+    # refitting changes nothing (no state carried over from the first fit)
+    again = LRMBeyondNyquistCV(**GRID, per_band=True).fit(u, y, F)
+    np.testing.assert_array_equal(again.frf_, cv.frf_)
+
+
+def test_per_bin_choice_on_a_mimo_record():
+    rng = np.random.default_rng(12)
+    u = np.array([multisine(N, rng=rng) for _ in range(2)])
+    y0 = simulate_resonant(u, F, 0.0, rng)
+    y = np.array([y0[0] + 0.5 * y0[1], 0.3 * y0[0] + y0[1]])
+    y = y + 0.002 * rng.standard_normal(y.shape)
+    cv = LRMBeyondNyquistCV(**GRID, per_band=True).fit(u, y, F)
+    assert cv.frf_.shape == cv.frf_std_.shape == (2, 2, N // 2 + 1)
+    np.testing.assert_allclose(cv.band_weights_.sum(axis=0), 1.0, rtol=1e-12)
+    diag = np.sqrt(np.real(np.diagonal(cv.frf_cov_, axis1=1, axis2=2)))
+    diag = np.moveaxis(diag, -1, 1)
+    ok = cv.valid_
+    np.testing.assert_allclose(diag[ok], cv.frf_std_[ok], rtol=1e-12)
+
+
+def _cluster_records(seeds):
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from generalisation_selection import per_band_table
+
+    rows = per_band_table(seeds)
+    ratio = np.array([r["rms_per_band"] / r["rms_best_global"] for r in rows])
+    rigid = np.array([r["rigid_per_band"] / r["rigid_best_global"] for r in rows])
+    cluster = np.array([r["cluster_per_band"] / r["cluster_best_global"]
+                        for r in rows])
+    return ratio, rigid, cluster
+
+
+def test_per_bin_choice_beats_the_best_single_setting_on_cluster_stages():
+    """Issue 15 item 4, fast version: on the cluster stages of the benchmark
+    (rigid body below 100 Hz, three modes aliasing onto one slow frequency;
+    seeds 1 and 2, both outputs, 40 dB) the per-slow-bin choice's RMS
+    relative error is on average <= 0.9x that of the best single setting of
+    the grid for each record (measured 0.78x), and its median error in the
+    rigid-body region and around the cluster is, in the median over the
+    records, no worse than that setting's (measured 0.90 and 0.95)."""
+    ratio, rigid, cluster = _cluster_records([1, 2])
+    assert ratio.mean() <= 0.9, ratio
+    assert np.median(rigid) <= 1.0 and np.median(cluster) <= 1.0, (rigid, cluster)
+
+
+@pytest.mark.slow
+def test_per_bin_choice_on_held_out_cluster_stages():
+    """The same on the held-out seeds 11-18 (16 records): mean RMS ratio
+    <= 0.9 (measured 0.857), region medians <= 1 (0.91 and 0.65)."""
+    ratio, rigid, cluster = _cluster_records(range(11, 19))
+    assert ratio.mean() <= 0.9, ratio
+    assert np.median(rigid) <= 1.0 and np.median(cluster) <= 1.0, (rigid, cluster)
