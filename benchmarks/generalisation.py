@@ -9,11 +9,15 @@ stages):
   route, F = 2, 3, 5 at 25/30/45/70 dB (``generalisation_std.py``);
 - ``selection``: ``LRMBeyondNyquistCV``'s pick against the per-record oracle
   of its grid, per criterion (``generalisation_selection.py``);
+- ``per_band``: ``LRMBeyondNyquistCV(per_band=True)`` against the best single
+  setting of the grid on cluster stages (``generalisation_selection.py
+  --per-band``; tuning seeds 1-8, held-out seeds 11-18: these stages are drawn
+  by ``cluster_stage``, not ``random_stage``);
 - ``diagnose``: false alarms and hits of ``lrmfrf.diagnose`` with one
   experiment at 40 dB, closed and open loop (``generalisation_diagnose.py``).
 
 Each study is also a script of its own with more options (MIMO, refined fits,
-per-band selection, ...). Run::
+...). Run::
 
     nice -n 5 python benchmarks/generalisation.py              # tuning seeds
     nice -n 5 python benchmarks/generalisation.py --held-out   # held-out seeds
@@ -40,7 +44,10 @@ import generalisation_std  # noqa: E402
 
 TUNING = "1000-1019"
 HELD_OUT = "2000-2019"
-PARTS = ("std", "selection", "diagnose")
+PARTS = ("std", "selection", "per_band", "diagnose")
+#: Seeds of the per-band study's cluster stages.
+PER_BAND_TUNING = "1-8"
+PER_BAND_HELD_OUT = "11-18"
 
 
 def part_arguments(part: str, seeds: str, quick: bool) -> list[str]:
@@ -54,6 +61,8 @@ def part_arguments(part: str, seeds: str, quick: bool) -> list[str]:
         return args
     if part == "selection":
         return ["--seeds", seeds] + ([] if quick else ["--wafer"])
+    if part == "per_band":
+        return ["--per-band", "--seeds", seeds]
     args = ["--seeds", seeds]
     if quick:
         args += ["--null-repeats", "1", "--calibration-runs", "5"]
@@ -75,10 +84,17 @@ def main(argv=None) -> int:
         seeds = f"{first}-{first + 2}"
     modules = {"std": generalisation_std, "selection": generalisation_selection,
                "diagnose": generalisation_diagnose}
+    modules["per_band"] = generalisation_selection
     for part in args.part:
         start = time.perf_counter()
-        print(f"\n## {part} (seeds {seeds})\n", flush=True)
-        modules[part].main(part_arguments(part, seeds, args.quick))
+        part_seeds = seeds
+        if part == "per_band":
+            part_seeds = PER_BAND_HELD_OUT if args.held_out else PER_BAND_TUNING
+            if args.quick:
+                first = int(part_seeds.split("-")[0])
+                part_seeds = f"{first}-{first + 1}"
+        print(f"\n## {part} (seeds {part_seeds})\n", flush=True)
+        modules[part].main(part_arguments(part, part_seeds, args.quick))
         print(f"\n({part}: {time.perf_counter() - start:.0f} s)", flush=True)
     return 0
 

@@ -767,7 +767,7 @@ class LRMBeyondNyquistCV(_LocalModelCV):
         (up to 64 on the default grid) and keeps the fits with weight
         somewhere. On cluster
         stages (``benchmarks/generalisation_selection.py --per-band``) it cut
-        the RMS relative error by 14-15 % against the best single setting of
+        the RMS relative error by 14 % against the best single setting of
         the grid for each record (README, "Per-band selection").
     bands : int, sequence of float or None, default=None
         With ``per_band=True``: ``None`` for the choice per slow bin above,
