@@ -34,6 +34,16 @@ complement of its denominator columns), its rows ``[X, K22]`` of ``K`` and
 their contribution to ``K^H K`` (``O(R_e p^2)`` work), then its ``H``,
 ``tr(G^-1 H)`` (``p^2``) and the band block from ``H G^-1[:, bands]``
 (``p^2 n_bands / 2``, the lower triangle of ``H``).
+
+:func:`solve_eiv_windows` fuses these terms into the closed-form solve of
+:mod:`lrmfrf._compiled` (the estimators' route): each window's terms are
+computed right after its solve, from the window data, moments and Cholesky
+factor of ``G`` the solve has just built and from its refined denominator,
+so the gather, the moments of ``G``, its factor and the denominator read of
+:func:`eiv_windows` are not repeated (measured about 15 % of the closed form
+with the default std, SISO and 2x2 alike). Only the solve's windows re-solved
+by QR (rare) need :func:`eiv_windows` afterwards. Both give the same terms
+bit for bit: the same step functions in the same order.
 """
 
 from __future__ import annotations
@@ -49,7 +59,7 @@ if _compiled.AVAILABLE:  # pragma: no branch
     import numba
     from numba import njit
 
-__all__ = ["eiv_windows"]
+__all__ = ["eiv_windows", "solve_eiv_windows"]
 
 _GROUPS_PER_TASK = 8
 
