@@ -945,6 +945,18 @@ def solve_windows(
     """
     if not AVAILABLE:
         raise ImportError("the compiled kernel needs numba (pip install numba)")
+    args, outputs, one_row = _solve_arguments(
+        U, Y, slow_bins, weights, col_base, F, n_centre, fallback_tol,
+        refine_tol, refine_steps, tables, to_layout,
+    )
+    run_lane_groups(_solve_range, args, slow_bins.size, n_threads)
+    return _solve_results(outputs, one_row, return_cov)
+
+
+def _solve_arguments(U, Y, slow_bins, weights, col_base, F, n_centre,
+                     fallback_tol, refine_tol, refine_steps, tables, to_layout):
+    """Arguments of :func:`_solve_range` (without the group range), its output
+    arrays ``(theta, rss, centre_cov, fast)`` and whether ``Y`` is one row."""
     B, p = slow_bins.size, weights.shape[1]
     weights = np.ascontiguousarray(weights, dtype=np.float64)
     col_base = np.ascontiguousarray(col_base, dtype=np.int64)
@@ -987,6 +999,13 @@ def solve_windows(
         np.ascontiguousarray(to_layout, dtype=np.float64), float(fallback_tol),
         float(refine_tol), int(refine_steps), theta, rss, centre_cov, fast,
     )
+    return args, (theta, rss, centre_cov, fast), one_row
+
+
+def run_lane_groups(kernel, args, B: int, n_threads: int | None = None) -> None:
+    """Run ``kernel(*args, first_group, stop_group)`` over the lane groups of
+    ``B`` windows, shared by ``n_threads`` threads (default
+    ``numba.config.NUMBA_NUM_THREADS``)."""
     n_groups = (B + LANES - 1) // LANES
     threads = n_threads or numba.config.NUMBA_NUM_THREADS
     # at least 4 tasks per thread when the groups allow: the last ones then
@@ -998,10 +1017,16 @@ def solve_windows(
     ]
     threads = min(threads, len(tasks))
     if threads <= 1:
-        _solve_range(*args, 0, n_groups)
+        if n_groups:
+            kernel(*args, 0, n_groups)
     else:  # the kernel releases the GIL: threads share the lane groups
         with ThreadPoolExecutor(threads) as pool:
-            list(pool.map(lambda task: _solve_range(*args, *task), tasks))
+            list(pool.map(lambda task: kernel(*args, *task), tasks))
+
+
+def _solve_results(outputs, one_row, return_cov):
+    """The results of :func:`solve_windows` from the kernel's output arrays."""
+    theta, rss, centre_cov, fast = outputs
     centre_cov = centre_cov.view(np.complex128)[..., 0]
     if not return_cov:
         centre_cov = np.real(np.diagonal(centre_cov, axis1=-2, axis2=-1)).copy()

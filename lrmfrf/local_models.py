@@ -405,6 +405,7 @@ class _ChunkOptions:
     rank_tol: float | None
     return_leverage: bool
     return_cov: bool
+    eiv: bool = False
 
 
 def _fit_chunk(U, Y, bins, layout, reference, options: _ChunkOptions):
@@ -433,7 +434,7 @@ def _fit_chunk_rows(U, Y, bins, layout, reference, options: _ChunkOptions):
     if options.solver == "normal":
         solutions = solve_local_normal_equations(
             U, Y, bins, layout, refine_steps=options.refine_steps,
-            backend=options.backend, **kwargs
+            backend=options.backend, eiv=options.eiv, **kwargs
         )
     else:
         solutions = []
@@ -445,9 +446,10 @@ def _fit_chunk_rows(U, Y, bins, layout, reference, options: _ChunkOptions):
             del A, b
     excited = (_relative_excitation(U, Y.shape[-1], bins, layout, reference)
                > EXCITATION_TOL).all(axis=1)
-    return [
-        _chunk_fit(sol, bins, layout, excited, options) for sol in solutions
-    ]
+    fits = [_chunk_fit(sol, bins, layout, excited, options) for sol in solutions]
+    if options.eiv:  # (the terms computed with the solve, None without them)
+        return fits, [getattr(sol, "eiv_raw", None) for sol in solutions]
+    return fits
 
 
 def _chunk_fit(sol, bins, layout, excited, options: _ChunkOptions):
@@ -787,6 +789,39 @@ def iter_local_fit_rows(
     fits : list of LocalModelFit
         The chunk's results of each row of ``outputs``.
     """
+    for start, fits, _ in _iter_fit_rows(
+        spectra, layout, outputs=outputs, chunk_size=chunk_size, backend=backend,
+        refine_steps=refine_steps, return_cov=return_cov,
+    ):
+        yield start, fits
+
+
+def _iter_fit_rows(
+    spectra: OneSidedSpectra,
+    layout: LocalModelLayout,
+    *,
+    outputs=None,
+    chunk_size: int | None = None,
+    backend: str = "auto",
+    refine_steps: int = 1,
+    return_cov: bool = False,
+    eiv: bool = False,
+):
+    """:func:`iter_local_fit_rows`, also yielding each chunk's normalised
+    spectra and, with ``eiv=True`` and the compiled kernel, the
+    errors-in-variables terms computed with the solve.
+
+    Yields
+    ------
+    start : int
+    fits : list of LocalModelFit
+    extra : tuple or None
+        ``(U, Y, bins, raws)`` with ``eiv=True``: the chunk's spectra (inputs
+        scaled by ``2**-u_exponent``, each output row by its own exponent, as
+        the solve saw them), its window bins and the per-row ``eiv_raw`` of
+        :class:`lrmfrf.solvers.LocalSolution` (None entries on the numpy
+        path); None otherwise.
+    """
     if outputs is None:
         outputs = range(spectra.outputs.shape[1])
     outputs = [int(o) for o in outputs]
@@ -807,7 +842,8 @@ def iter_local_fit_rows(
     reference = _excitation_reference(
         scale_by_power_of_two(mean_energy, -2 * u_exponent), layout
     )
-    options = _ChunkOptions("normal", backend, refine_steps, None, False, return_cov)
+    options = _ChunkOptions("normal", backend, refine_steps, None, False, return_cov,
+                            eiv)
     with _single_threaded_blas():  # left when the generator ends or is closed
         for start in range(0, n_bins, chunk_size):
             stop = min(n_bins, start + chunk_size)
@@ -819,6 +855,10 @@ def iter_local_fit_rows(
                 if exponent:
                     Y[:, i] = scale_by_power_of_two(Y[:, i], -exponent)
             fits = _fit_chunk_rows(U, Y, bins, layout, reference, options)
+            extra = None
+            if eiv:
+                fits, raws = fits
+                extra = (U, Y, bins, raws)
             del U, Y
             yield start, [
                 rescale_local_fit(
@@ -826,7 +866,8 @@ def iter_local_fit_rows(
                     exponent,
                 )
                 for fit, exponent in zip(fits, y_exponents, strict=True)
-            ]
+            ], extra
+            del extra
 
 
 def fit_one_sided(

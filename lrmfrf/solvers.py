@@ -13,7 +13,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _compiled
-from .windows import LocalModelLayout, StructuredWindows, local_regressor
+from .windows import (
+    LocalModelLayout,
+    StructuredWindows,
+    local_regressor,
+    window_offsets,
+)
 
 __all__ = [
     "LocalSolution",
@@ -77,6 +82,12 @@ class LocalSolution:
         ``(A^H A)^-1`` at the leading ``c = cov_columns`` columns (the
         window-centre values of the input bands in the layout order), when
         requested.
+    eiv_raw : tuple or None
+        With ``eiv=True`` of :func:`solve_local_normal_equations` (compiled
+        kernel): ``(lead, hw_trace, w_sum, w_min, w_max, valid)``, the terms of
+        :func:`lrmfrf._compiled_uncertainty.eiv_windows` of the closed-form
+        solution, computed with the solve; ``valid`` is False where the window
+        was re-solved by QR (its terms must be computed again).
     """
 
     theta: np.ndarray
@@ -85,6 +96,7 @@ class LocalSolution:
     well_posed: np.ndarray
     leverage: np.ndarray | None = None
     lead_cov: np.ndarray | None = None
+    eiv_raw: tuple | None = None
 
 
 def solve_local_least_squares(
@@ -273,6 +285,7 @@ def solve_local_normal_equations(
     rank_columns: int | None = None,
     backend: str = "auto",
     cov_columns: int = 0,
+    eiv: bool = False,
 ) -> LocalSolution:
     """Fast closed form eq. (linearSolution) by structured normal equations.
 
@@ -322,6 +335,12 @@ def solve_local_normal_equations(
     cov_columns : int, default=0
         Also return ``(A^H A)^-1`` at the leading ``cov_columns`` layout
         columns (at most ``layout.n_bands``: the window-centre band values).
+    eiv : bool, default=False
+        With the compiled kernel, also compute the errors-in-variables terms
+        of the solution in the same pass (``eiv_raw`` of the result; see
+        :func:`lrmfrf._compiled_uncertainty.solve_eiv_windows`): the window
+        data and the factor of ``A^H A`` are then built once for the solve and
+        the terms. Ignored by the numpy path (``eiv_raw`` None).
 
     Returns
     -------
@@ -336,7 +355,24 @@ def solve_local_normal_equations(
     backend = resolve_backend(backend, slow_bins.size, layout.n_params)
     rows = Y[:, None] if Y.ndim == 2 else Y  # (P, n_rows, M)
     n_centre = layout.n_bands + layout.n_experiments
-    if backend == "numba":
+    eiv_raw = None
+    if backend == "numba" and eiv:
+        from ._compiled_uncertainty import solve_eiv_windows
+
+        weights, col_base, tables, to_layout = _kernel_tables(layout)
+        _, x = window_offsets(layout.half_window)
+        solved, eiv_raw = solve_eiv_windows(
+            U.reshape(U.shape[0], layout.n_inputs, -1), rows, slow_bins, weights,
+            col_base, layout.n_bands, n_centre,
+            den_columns=np.arange(layout.n_params)[layout.den_columns],
+            powers=x[:, None] ** np.arange(1, layout.den_degree + 1),
+            tables=tables, weighted_tables=_kernel_weighted_tables(layout),
+            to_layout=to_layout, fallback_tol=fallback_tol,
+            refine_tol=REFINEMENT_TOL, refine_steps=refine_steps,
+        )
+        # the terms hold where the kernel's own solution is kept
+        eiv_raw = eiv_raw + (solved[3].copy(),)
+    elif backend == "numba":
         weights, col_base, tables, to_layout = _kernel_tables(layout)
         solved = _compiled.solve_windows(
             U.reshape(U.shape[0], layout.n_inputs, -1), rows, slow_bins, weights,
@@ -363,6 +399,9 @@ def solve_local_normal_equations(
         )
         for o in range(rows.shape[1])
     ]
+    if eiv_raw is not None:
+        for o, solution in enumerate(solutions):
+            solution.eiv_raw = tuple(part[o] for part in eiv_raw)
     return solutions[0] if Y.ndim == 2 else solutions
 
 
@@ -510,6 +549,16 @@ def _kernel_tables(layout: LocalModelLayout):
     weights, col_base = weights[:, move], col_base[move]
     tables = _compiled.moment_tables(weights, col_base, layout.n_bands, P)
     return weights, col_base, tables, empty.to_layout_matrix[move]
+
+
+@functools.lru_cache(maxsize=16)
+def _kernel_weighted_tables(layout: LocalModelLayout) -> dict:
+    """Row-weighted moment tables (for ``A^H diag(w) A``) in the column order
+    of :func:`_kernel_tables` (the denominator columns last)."""
+    weights, col_base, _, _ = _kernel_tables(layout)
+    return _compiled.moment_tables(
+        weights, col_base, layout.n_bands, layout.n_experiments, weighted=True
+    )
 
 
 @functools.lru_cache(maxsize=16)

@@ -52,13 +52,13 @@ finite sample properties", J. Econometrics 29 (1985) (HC2).
 from __future__ import annotations
 
 import contextlib
-import functools
 from dataclasses import dataclass, replace
 
 import numpy as np
 
-from . import _compiled, _compiled_uncertainty
+from . import _compiled_uncertainty
 from .local_models import (
+    _iter_fit_rows,
     _single_threaded_blas,
     iter_local_fit_rows,
     iter_local_fits,
@@ -69,6 +69,7 @@ from .solvers import (
     CHOLESKY_FALLBACK_TOL,
     RANK_TOL,
     _kernel_tables,
+    _kernel_weighted_tables,
     qr_chunk_size,
     resolve_backend,
 )
@@ -381,14 +382,10 @@ def check_std_method(value, name: str = "std_method") -> str:
     return value
 
 
-@functools.lru_cache(maxsize=16)
 def _weighted_tables(layout: LocalModelLayout) -> dict:
     """Row-weighted moment tables (for ``A^H diag(w) A``) in the column order
     of :func:`lrmfrf.solvers._kernel_tables` (the denominator columns last)."""
-    weights, col_base, _, _ = _kernel_tables(layout)
-    return _compiled.moment_tables(
-        weights, col_base, layout.n_bands, layout.n_experiments, weighted=True
-    )
+    return _kernel_weighted_tables(layout)
 
 
 def eiv_terms(
@@ -478,18 +475,53 @@ def eiv_terms_rows(
                                 with_hc=False) for o in range(n_rows)]
         return (np.stack([terms.eiv_lead for terms in parts]),
                 np.stack([terms.eiv_trace for terms in parts]))
+    return _eiv_terms_compiled(U, Y, layout, theta, slow_bins)
+
+
+def _eiv_terms_compiled(U, Y, layout, theta, slow_bins, raws=None):
+    """The compiled route of :func:`eiv_terms_rows` (``backend="numba"``).
+
+    ``raws``: optional per-row ``eiv_raw`` of
+    :class:`lrmfrf.solvers.LocalSolution` (the kernel's terms computed with
+    the solve of ``theta``; windows not ``valid`` there, i.e. re-solved by
+    QR, are computed here again); without them every window is computed
+    here."""
+    n_rows, B = theta.shape[:2]
     good = np.all(np.isfinite(theta), axis=2)
-    den = np.where(good[:, :, None], theta[:, :, layout.den_columns], 0.0)
-    _, x = window_offsets(layout.half_window)
-    powers = x[:, None] ** np.arange(1, layout.den_degree + 1)
-    weights, col_base, tables, _ = _kernel_tables(layout)
     nb = layout.n_bands
-    lead, hw_trace, w_sum, w_min, w_max, ok = _compiled_uncertainty.eiv_windows(
-        U.reshape(U.shape[0], layout.n_inputs, -1), Y, slow_bins, den, powers,
-        weights, col_base, nb, nb + layout.n_experiments, tables=tables,
-        weighted_tables=_weighted_tables(layout),
-        fallback_tol=CHOLESKY_FALLBACK_TOL,
-    )
+    if raws is None or any(raw is None for raw in raws):
+        todo = np.ones((n_rows, B), dtype=bool)
+        lead = np.empty((n_rows, B, nb, nb), dtype=complex)
+        hw_trace, w_sum, w_min, w_max = (np.empty((n_rows, B)) for _ in range(4))
+        ok = np.ones((n_rows, B), dtype=bool)
+    else:
+        lead, hw_trace, w_sum, w_min, w_max, valid = (
+            np.stack(part) for part in zip(*raws, strict=True)
+        )
+        todo = good & ~valid
+        ok = np.ones((n_rows, B), dtype=bool)
+    # the windows still without terms: all rows' windows in one kernel pass
+    # (each window is computed alone, so a subset gives the same terms)
+    windows = np.flatnonzero(todo.any(axis=0))
+    if windows.size:
+        sub = theta[:, windows]
+        sub_good = good[:, windows]
+        den = np.where(sub_good[:, :, None], sub[:, :, layout.den_columns], 0.0)
+        _, x = window_offsets(layout.half_window)
+        powers = x[:, None] ** np.arange(1, layout.den_degree + 1)
+        weights, col_base, tables, _ = _kernel_tables(layout)
+        parts = _compiled_uncertainty.eiv_windows(
+            U.reshape(U.shape[0], layout.n_inputs, -1), Y, slow_bins[windows],
+            den, powers, weights, col_base, nb, nb + layout.n_experiments,
+            tables=tables, weighted_tables=_weighted_tables(layout),
+            fallback_tol=CHOLESKY_FALLBACK_TOL,
+        )
+        pick = todo[:, windows]
+        for full, part in zip((lead, hw_trace, w_sum, w_min, w_max, ok), parts,
+                              strict=True):
+            target = full[:, windows]
+            target[pick] = part[pick]
+            full[:, windows] = target
     # as variance_terms: the trace within q min w .. q max w
     q = max(layout.dof, 0)
     trace = np.clip(w_sum - hw_trace, q * w_min, q * w_max)
@@ -622,28 +654,27 @@ def iter_calibrated_fit_rows(
             f"`method` {method!r} does not stream; use 'lemma2' or 'eiv', or "
             "calibrated_local_fit on the whole fit."
         )
-    chunks = iter_local_fit_rows(spectra, layout, backend=backend,
-                                 return_cov=return_cov)
     if _keeps_lemma2(method, layout):
-        yield from chunks
+        yield from iter_local_fit_rows(spectra, layout, backend=backend,
+                                       return_cov=return_cov)
         return
     n_y = spectra.outputs.shape[1]
     backend = resolve_backend(backend, spectra.n_slow // 2 + 1, layout.n_params)
     # the normalisation of iter_local_fit_rows, row by row
     u_exponent = power_of_two_exponent(spectra.inputs)
     y_exponents = [power_of_two_exponent(spectra.outputs[:, o]) for o in range(n_y)]
-    for start, fits in chunks:
-        stop = start + fits[0].slow_bins.size
-        U, Y, bins = spectra.window_spectra(start, stop, layout.half_window,
-                                            list(range(n_y)))
-        U = scale_by_power_of_two(U, -u_exponent)
-        Y = np.stack([scale_by_power_of_two(Y[:, o], -y_exponents[o])
-                      for o in range(n_y)], axis=1)
-        # the terms of all rows in one pass (shared input and transient block)
-        leads, traces = eiv_terms_rows(
-            U, Y, layout, np.stack([fit.theta for fit in fits]), bins,
-            backend=backend,
-        )
+    # the compiled kernel computes the terms with the solve (same window data
+    # and factor of A^H A); the chunk's normalised spectra come along for the
+    # windows re-solved by QR
+    for start, fits, (U, Y, bins, raws) in _iter_fit_rows(
+        spectra, layout, backend=backend, return_cov=return_cov, eiv=True,
+    ):
+        thetas = np.stack([fit.theta for fit in fits])
+        if backend == "numba":
+            leads, traces = _eiv_terms_compiled(U, Y, layout, thetas, bins, raws)
+        else:  # the terms of all rows in one pass (shared input block)
+            leads, traces = eiv_terms_rows(U, Y, layout, thetas, bins,
+                                           backend=backend)
         del U, Y
         out = []
         for fit, y_exponent, lead, trace in zip(fits, y_exponents, leads, traces,

@@ -23,8 +23,13 @@ from lrmfrf.local_models import dft, fit_local_models
 from lrmfrf.plants import mimo_wafer_stage, random_stage
 from lrmfrf.signals import multisine, orthogonal_multisines
 from lrmfrf.simulate import simulate
-from lrmfrf.solvers import CHOLESKY_FALLBACK_TOL, _kernel_tables
+from lrmfrf.solvers import (
+    CHOLESKY_FALLBACK_TOL,
+    _kernel_tables,
+    solve_local_normal_equations,
+)
 from lrmfrf.uncertainty import (
+    _eiv_terms_compiled,
     _weighted_tables,
     band_covariance,
     calibrated_local_fit,
@@ -278,3 +283,80 @@ def test_row_shared_terms_reject_theta_of_another_shape():
     fits = _row_fits(U, Y, layout)
     with pytest.raises(ValueError, match=r"`theta` must have shape \(n_rows, B"):
         eiv_terms_rows(U, Y, layout, fits[0].theta, fits[0].slow_bins)
+
+
+# --- the terms fused into the closed-form solve (solve_eiv_windows) --------------
+
+
+def _fused(U, Y, layout):
+    """The closed form with and without the fused terms, and the terms of the
+    separate pass (eiv_terms_rows) on the fused solve's parameters."""
+    bins = np.arange(Y.shape[-1] // 2 + 1)
+    # (the estimators' rank test: the input and transient columns)
+    kwargs = {"backend": "numba",
+              "rank_columns": layout.n_system + layout.n_transient}
+    fused = solve_local_normal_equations(U, Y, bins, layout, eiv=True, **kwargs)
+    plain = solve_local_normal_equations(U, Y, bins, layout, **kwargs)
+    theta = np.stack([sol.theta for sol in fused])
+    return bins, fused, plain, theta
+
+
+@pytest.mark.parametrize(
+    ("n_u", "n_y", "P", "half_window"),
+    [(2, 2, 2, 12), (1, 1, 1, 12), (3, 1, 1, 20), (1, 3, 2, 12)],
+)
+def test_fused_terms_equal_the_separate_pass(n_u, n_y, P, half_window):
+    """The terms computed with the solve (its window data, factor and refined
+    denominator) are the separate kernel pass's on the same parameters, bit
+    for bit (the same step functions in the same order), and the solve
+    itself is unchanged by the fusion."""
+    U, Y, layout = _mimo_spectra(n_u, n_y, P, half_window)
+    bins, fused, plain, theta = _fused(U, Y, layout)
+    for one, two in zip(fused, plain, strict=True):
+        np.testing.assert_array_equal(one.theta, two.theta)
+        np.testing.assert_array_equal(one.rss, two.rss)
+        np.testing.assert_array_equal(one.gram_inv_diag, two.gram_inv_diag)
+        assert two.eiv_raw is None
+    weights, col_base, tables, _ = _kernel_tables(layout)
+    nb = layout.n_bands
+    _, x = window_offsets(layout.half_window)
+    separate = eiv_windows(
+        U.reshape(P, n_u, -1), Y, bins, theta[:, :, layout.den_columns],
+        x[:, None] ** np.arange(1, layout.den_degree + 1), weights, col_base,
+        nb, nb + P, tables=tables, weighted_tables=_weighted_tables(layout),
+        fallback_tol=CHOLESKY_FALLBACK_TOL,
+    )
+    for o, sol in enumerate(fused):
+        *terms, valid = sol.eiv_raw
+        assert valid.all()  # (well-conditioned windows: none re-solved by QR)
+        for got, want in zip(terms, separate[:5], strict=True):
+            np.testing.assert_array_equal(got, want[o])
+    lead, trace = _eiv_terms_compiled(U, Y, layout, theta, bins,
+                                      [sol.eiv_raw for sol in fused])
+    want_lead, want_trace = eiv_terms_rows(U, Y, layout, theta, bins,
+                                           backend="numba")
+    np.testing.assert_array_equal(lead, want_lead)
+    np.testing.assert_array_equal(trace, want_trace)
+
+
+def test_fused_terms_recomputed_where_qr_resolves():
+    """Windows the normal equations leave to QR (here a row whose output is
+    zero over a stretch: its pivot check fails) get a new solution, so their
+    fused terms are not valid; they are computed again (separate kernel pass,
+    then the dense route where its check fails too) and the result is
+    eiv_terms_rows on the final parameters exactly."""
+    U, Y, layout = _mimo_spectra(2, 2, 2, 12)
+    Y = Y.copy()
+    Y[:, 1, 60:100] = 0.0
+    Y[:, 1, -99:-59] = 0.0
+    bins, fused, _, theta = _fused(U, Y, layout)
+    valid = np.stack([sol.eiv_raw[-1] for sol in fused])
+    redone = ~valid[1] & np.all(np.isfinite(theta[1]), axis=1)
+    assert valid[0].all() and 10 <= redone.sum() <= 40
+    lead, trace = _eiv_terms_compiled(U, Y, layout, theta, bins,
+                                      [sol.eiv_raw for sol in fused])
+    want_lead, want_trace = eiv_terms_rows(U, Y, layout, theta, bins,
+                                           backend="numba")
+    np.testing.assert_array_equal(lead, want_lead)
+    np.testing.assert_array_equal(trace, want_trace)
+    assert np.all(np.isfinite(trace[1, redone]))
