@@ -22,6 +22,10 @@ criteria are those of ``lrmfrf.estimators.selection.CRITERIA`` and the
 variants explored for issue 15 (:func:`criterion_values`: ``loo`` full-window
 leave-one-out, ``*_g`` geometric means over windows, ``aicg_k<c>`` the GAIC
 family, ``dofg_k<c>``, ``bicg``, ``relstd`` the Lemma-2 relative std).
+``pmse`` (the default since its second round) is scored by the library's own
+function from the cached band values and Lemma-2 variances of every
+candidate (``per_window["band"]``, ``["gvar"]``), so the criteria of a record
+can be re-scored without refitting (:func:`criterion_values`).
 
 ``--mimo`` runs the same table on 2x2 systems instead: ``G[0:2, 0:2]`` of
 ``random_stage(seed, mimo=True)`` (the four-corner plate, its own ``F``;
@@ -61,6 +65,7 @@ from lrmfrf.estimators.selection import (
     LRMBeyondNyquistCV,
     _combine,
     _local_criteria,
+    _pmse_criteria,
 )
 from lrmfrf.local_models import one_sided_fast_grid
 from lrmfrf.plants import mimo_wafer_stage, random_stage, wafer_stage
@@ -236,7 +241,8 @@ def _ingredients(U, Y, layout):
         gvar = layout.F**2 * sol.gram_inv_diag[:, : layout.F]
         relvar = np.sum(gvar / np.abs(band) ** 2, axis=1)
         absvar = np.sum(gvar, axis=1)
-    return per_bin, ok, band, {"loo": loo, "relvar": relvar, "absvar": absvar}
+    return per_bin, ok, band, {"loo": loo, "relvar": relvar, "absvar": absvar,
+                               "band": band, "gvar": gvar}
 
 
 # --- criteria -----------------------------------------------------------------
@@ -258,6 +264,15 @@ def _wmean(values, ok, M):
 def criterion_values(rec: dict, name: str) -> np.ndarray:
     """Value of criterion ``name`` for every candidate of a record."""
     M = rec["M"]
+    if name == "pmse":  # the library's, from the cached band values
+        ingredients = {}
+        for i, (pw, layout) in enumerate(zip(rec["per_window"], rec["layouts"],
+                                             strict=True)):
+            var = pw["gvar"] * (pw["residual"] * M * layout.n_equations
+                                / layout.dof)[:, None]
+            ingredients[i] = (pw["band"][None], var[None], pw["ok"][None])
+        scored = _pmse_criteria(ingredients, rec["layouts"])
+        return np.array([scored[i].value for i in range(len(rec["layouts"]))])
     out = np.empty(len(rec["layouts"]))
     for i, (pw, layout) in enumerate(zip(rec["per_window"], rec["layouts"],
                                          strict=True)):
@@ -400,7 +415,8 @@ def main(argv=None) -> int:
                         help="random-stage seeds, e.g. 1000-1019 or 2000-2019")
     parser.add_argument("--wafer", action="store_true",
                         help="add wafer_stage() (its two closed-loop systems)")
-    parser.add_argument("--criteria", nargs="+", default=["gaic", *CRITERIA[:-1]])
+    parser.add_argument("--criteria", nargs="+",
+                        default=["pmse", "gaic", "aicc", "gcv", "press"])
     parser.add_argument("--n-jobs", type=int, default=1)
     parser.add_argument("--csv", help="write one row per record here")
     parser.add_argument("--per-band", action="store_true",
