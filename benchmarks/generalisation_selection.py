@@ -137,13 +137,15 @@ def mimo_record_ingredients(system, F: int, seed: int, grid=None) -> dict:
     per_window, layouts = [], []
     for i, c in enumerate(grid):
         layout = LocalModelLayout(F=F, n_experiments=2, n_inputs=2, **c)
-        residual, ok = [], []
+        residual, ok, bands, variances = [], [], [], []
         rel = np.full(G.shape, np.nan)
-        for o in range(2):  # as LRMBeyondNyquistCV: no leverage without PRESS
-            per_bin, ok_o, band = _local_criteria(U, Y[:, o], layout,
-                                                  leverage=False)
+        for o in range(2):  # QR with the band variances (for "pmse")
+            per_bin, ok_o, band, var = _local_criteria(U, Y[:, o], layout,
+                                                       variance=True)
             residual.append(per_bin["residual"])
             ok.append(ok_o)
+            bands.append(band)
+            variances.append(var)
             for j in range(2):
                 frf = one_sided_fast_grid(band[:, j * F:(j + 1) * F], N, F,
                                           conj=True)
@@ -151,7 +153,8 @@ def mimo_record_ingredients(system, F: int, seed: int, grid=None) -> dict:
                     np.where(usable[o, j], G[o, j], 1.0))
         rel[~usable] = np.nan
         errors[i] = np.nanmedian(rel) if np.isfinite(rel).any() else np.inf
-        per_window.append({"residual": np.stack(residual), "ok": np.stack(ok)})
+        per_window.append({"residual": np.stack(residual), "ok": np.stack(ok),
+                           "band": np.stack(bands), "var": np.stack(variances)})
         layouts.append(layout)
     return {"errors": errors, "per_window": per_window, "layouts": layouts,
             "snr_db": snr, "N": N, "M": N // F, "F": F, "grid": grid}
@@ -268,6 +271,9 @@ def criterion_values(rec: dict, name: str) -> np.ndarray:
         ingredients = {}
         for i, (pw, layout) in enumerate(zip(rec["per_window"], rec["layouts"],
                                              strict=True)):
+            if "var" in pw:  # 2x2 records: (n_y, M//2+1, n_u F) already
+                ingredients[i] = (pw["band"], pw["var"], pw["ok"])
+                continue
             var = pw["gvar"] * (pw["residual"] * M * layout.n_equations
                                 / layout.dof)[:, None]
             ingredients[i] = (pw["band"][None], var[None], pw["ok"][None])
@@ -434,9 +440,9 @@ def main(argv=None) -> int:
     seeds = _parse_seeds(args.seeds) + (["wafer"] if args.wafer else [])
     if args.mimo:
         if "--criteria" not in (argv if argv is not None else sys.argv):
-            args.criteria = ["gaic", "aicc", "gcv"]
-        if set(args.criteria) - {"gaic", "aicc", "gcv"}:
-            parser.error("--mimo takes the criteria gaic, aicc and gcv")
+            args.criteria = ["pmse", "gaic", "aicc", "gcv"]
+        if set(args.criteria) - {"pmse", "gaic", "aicc", "gcv"}:
+            parser.error("--mimo takes the criteria pmse, gaic, aicc and gcv")
     table = selection_table(seeds, criteria=args.criteria, n_jobs=args.n_jobs,
                             mimo=args.mimo)
     rows = table["rows"]
