@@ -22,6 +22,10 @@ criteria are those of ``lrmfrf.estimators.selection.CRITERIA`` and the
 variants explored for issue 15 (:func:`criterion_values`: ``loo`` full-window
 leave-one-out, ``*_g`` geometric means over windows, ``aicg_k<c>`` the GAIC
 family, ``dofg_k<c>``, ``bicg``, ``relstd`` the Lemma-2 relative std).
+``pmse`` (the default since its second round) is scored by the library's own
+function from the cached band values and Lemma-2 variances of every
+candidate (``per_window["band"]``, ``["gvar"]``), so the criteria of a record
+can be re-scored without refitting (:func:`criterion_values`).
 
 ``--mimo`` runs the same table on 2x2 systems instead: ``G[0:2, 0:2]`` of
 ``random_stage(seed, mimo=True)`` (the four-corner plate, its own ``F``;
@@ -61,6 +65,7 @@ from lrmfrf.estimators.selection import (
     LRMBeyondNyquistCV,
     _combine,
     _local_criteria,
+    _pmse_criteria,
 )
 from lrmfrf.local_models import one_sided_fast_grid
 from lrmfrf.plants import mimo_wafer_stage, random_stage, wafer_stage
@@ -132,13 +137,15 @@ def mimo_record_ingredients(system, F: int, seed: int, grid=None) -> dict:
     per_window, layouts = [], []
     for i, c in enumerate(grid):
         layout = LocalModelLayout(F=F, n_experiments=2, n_inputs=2, **c)
-        residual, ok = [], []
+        residual, ok, bands, variances = [], [], [], []
         rel = np.full(G.shape, np.nan)
-        for o in range(2):  # as LRMBeyondNyquistCV: no leverage without PRESS
-            per_bin, ok_o, band = _local_criteria(U, Y[:, o], layout,
-                                                  leverage=False)
+        for o in range(2):  # QR with the band variances (for "pmse")
+            per_bin, ok_o, band, var = _local_criteria(U, Y[:, o], layout,
+                                                       variance=True)
             residual.append(per_bin["residual"])
             ok.append(ok_o)
+            bands.append(band)
+            variances.append(var)
             for j in range(2):
                 frf = one_sided_fast_grid(band[:, j * F:(j + 1) * F], N, F,
                                           conj=True)
@@ -146,7 +153,8 @@ def mimo_record_ingredients(system, F: int, seed: int, grid=None) -> dict:
                     np.where(usable[o, j], G[o, j], 1.0))
         rel[~usable] = np.nan
         errors[i] = np.nanmedian(rel) if np.isfinite(rel).any() else np.inf
-        per_window.append({"residual": np.stack(residual), "ok": np.stack(ok)})
+        per_window.append({"residual": np.stack(residual), "ok": np.stack(ok),
+                           "band": np.stack(bands), "var": np.stack(variances)})
         layouts.append(layout)
     return {"errors": errors, "per_window": per_window, "layouts": layouts,
             "snr_db": snr, "N": N, "M": N // F, "F": F, "grid": grid}
@@ -250,7 +258,8 @@ def _ingredients(U, Y, layout):
         gvar = layout.F**2 * sol.gram_inv_diag[:, : layout.F]
         relvar = np.sum(gvar / np.abs(band) ** 2, axis=1)
         absvar = np.sum(gvar, axis=1)
-    return per_bin, ok, band, {"loo": loo, "relvar": relvar, "absvar": absvar}
+    return per_bin, ok, band, {"loo": loo, "relvar": relvar, "absvar": absvar,
+                               "band": band, "gvar": gvar}
 
 
 # --- criteria -----------------------------------------------------------------
@@ -272,6 +281,18 @@ def _wmean(values, ok, M):
 def criterion_values(rec: dict, name: str) -> np.ndarray:
     """Value of criterion ``name`` for every candidate of a record."""
     M = rec["M"]
+    if name == "pmse":  # the library's, from the cached band values
+        ingredients = {}
+        for i, (pw, layout) in enumerate(zip(rec["per_window"], rec["layouts"],
+                                             strict=True)):
+            if "var" in pw:  # 2x2 records: (n_y, M//2+1, n_u F) already
+                ingredients[i] = (pw["band"], pw["var"], pw["ok"])
+                continue
+            var = pw["gvar"] * (pw["residual"] * M * layout.n_equations
+                                / layout.dof)[:, None]
+            ingredients[i] = (pw["band"][None], var[None], pw["ok"][None])
+        scored = _pmse_criteria(ingredients, rec["layouts"])
+        return np.array([scored[i].value for i in range(len(rec["layouts"]))])
     out = np.empty(len(rec["layouts"]))
     for i, (pw, layout) in enumerate(zip(rec["per_window"], rec["layouts"],
                                          strict=True)):
@@ -422,7 +443,8 @@ def main(argv=None) -> int:
                         help="random-stage seeds, e.g. 1000-1019 or 2000-2019")
     parser.add_argument("--wafer", action="store_true",
                         help="add wafer_stage() (its two closed-loop systems)")
-    parser.add_argument("--criteria", nargs="+", default=["gaic", *CRITERIA[:-1]])
+    parser.add_argument("--criteria", nargs="+",
+                        default=["pmse", "gaic", "aicc", "gcv", "press"])
     parser.add_argument("--n-jobs", type=int, default=1)
     parser.add_argument("--csv", help="write one row per record here")
     parser.add_argument("--per-band", action="store_true",
@@ -444,9 +466,9 @@ def main(argv=None) -> int:
     seeds = _parse_seeds(args.seeds) + (["wafer"] if args.wafer else [])
     if args.mimo:
         if "--criteria" not in (argv if argv is not None else sys.argv):
-            args.criteria = ["gaic", "aicc", "gcv"]
-        if set(args.criteria) - {"gaic", "aicc", "gcv"}:
-            parser.error("--mimo takes the criteria gaic, aicc and gcv")
+            args.criteria = ["pmse", "gaic", "aicc", "gcv"]
+        if set(args.criteria) - {"pmse", "gaic", "aicc", "gcv"}:
+            parser.error("--mimo takes the criteria pmse, gaic, aicc and gcv")
     if args.with_per_band and args.mimo:
         parser.error("--with-per-band is for SISO records")
     table = selection_table(seeds, criteria=args.criteria, n_jobs=args.n_jobs,

@@ -4,9 +4,23 @@ Like scikit-learn's ``RidgeCV``, every candidate setting is scored from a
 single solve of its local problems, without refitting on data subsets. Each
 local window is a linear least-squares problem ``A theta = b`` (eq. Kvector)
 with ``L`` complex equations (``P (2n+1)`` for ``P`` experiments) and ``p``
-complex parameters. Four criteria are available:
+complex parameters. Five criteria are available:
 
-``"gaic"`` (default of ``LRMBeyondNyquistCV``)
+``"pmse"`` (default of ``LRMBeyondNyquistCV``)
+    Predicted relative squared error of the de-aliased band values. The
+    reference ``G_r`` is the candidate with the widest window and the most
+    parameters (of those with the fewest invalid windows): nearly unbiased,
+    noisy. Per band value of candidate ``c``, ``|G_c - G_r|^2 - var_r``
+    estimates ``bias_c^2 - var_c`` (for nested fits the covariance of the
+    two estimates is about ``var_c``), so ``bias_c^2 + var_c`` is about
+    ``max(|G_c - G_r|^2 - var_r, 0) + 2 var_c``, with the variances the
+    Lemma-2 ones (``F^2 (A^H A)^-1 rss / (L - p)``). Divided by ``|G_r|^2``,
+    its median over all band values (windows, bands and output rows) is the
+    criterion: it scores the error that matters, the median relative FRF
+    error, instead of the fit of the aliased output. It compares candidates,
+    so it exists in ``LRMBeyondNyquistCV`` only, not in
+    :func:`local_model_criterion`.
+``"gaic"`` (default of ``LRMBeyondNyquistCV`` before ``"pmse"``)
     The mean over windows of ``log(sigma_k^2)``, each window's own residual
     variance per equation, plus ``3.5 p / (L - p - 1)``: AICc's penalty with
     a larger weight, on the geometric instead of the arithmetic mean of the
@@ -26,7 +40,32 @@ complex parameters. Four criteria are available:
     centre the denominator ``D(0) = 1``, so it is an output error in units of
     ``Y_l`` comparable across windows and degrees.
 
-Why GAIC is the default (issue 15;
+Why PMSE is the default (issue 15, second round;
+``benchmarks/generalisation_selection.py``, the records below): the
+residual-based criteria (GAIC, AICc) rank the fit of the slow output, which
+the few windows with a large output dominate, and on closed-loop records
+(flat force excitation) large bands of the FRF are noise-dominated, where the
+relative error wants the smallest variance, not the best output fit. On the
+80 tuning records (seeds 1000-1019) PMSE's pick had 1.08x the oracle's error
+on average (worst 1.56x; closed loop 1.12x, open loop 1.04x) against GAIC's
+1.11x (1.91x) and the best single fixed setting's 1.09x (1.63x); on the 82
+held-out records (seeds 2000-2019 and the wafer stage, not used to choose
+anything) 1.05x (worst 1.27x) against GAIC 1.14x (1.49x), AICc 1.09x
+(1.73x) and the best fixed setting 1.08x (1.32x). The variance weight 2 was
+chosen from 1.5, 2, 2.5, 3 on the tuning records; the references tried
+there were (36, 5, 5, 7) (1.07x), the GAIC pick (1.09-1.10x) and the widest
+richest candidate (1.07x, kept: it exists for any grid), the statistics the
+median and the mean of logs (1.09x). Also tried on the tuning records:
+falling back to the best fixed setting when GAIC's margin over it is small
+(1.08-1.10x), GAIC restricted to n = 36 (1.09x), GAIC weights 2.5-5
+(1.09-1.27x). The issue's worst-case target (1.25x) is not met: 1.56x on
+tuning (5 of 80 records above 1.25x), 1.27x held out (1 of 82), all of them
+closed-loop records with oracle errors of 23-62 %, where the oracle takes low
+degrees (e.g. (36, 2, 2, 7)) and PMSE richer ones (e.g. (36, 5, 5, 8)). On
+the two wafer-stage records PMSE picks 1.05x (G_y4) and 1.12x (G_z), AICc
+1.05x and 1.02x.
+
+Why GAIC was the default (issue 15, first round;
 ``benchmarks/generalisation_selection.py``): on 80 records of 20 random stages
 (``lrmfrf.plants.random_stage``, seeds 1000-1019, F = 2-5, closed and open
 loop, outputs ``y4`` and ``z``, M = 400 slow samples, 30-45 dB) the error of
@@ -140,7 +179,7 @@ __all__ = [
 ]
 
 #: Allowed values of ``criterion``.
-CRITERIA = ("aicc", "gcv", "press", "gaic")
+CRITERIA = ("aicc", "gcv", "press", "gaic", "pmse")
 
 #: Attributes set by the per-band selection only.
 _BAND_ATTRIBUTES = ("band_bounds_", "band_frequencies_", "band_params_",
@@ -149,11 +188,16 @@ _BAND_ATTRIBUTES = ("band_bounds_", "band_frequencies_", "band_params_",
 
 #: Residual degrees of freedom each criterion needs (AICc and GAIC divide by
 #: L - p - 1).
-_MIN_DOF = {"aicc": 2, "gcv": 1, "press": 1, "gaic": 2}
+_MIN_DOF = {"aicc": 2, "gcv": 1, "press": 1, "gaic": 2, "pmse": 1}
 
 #: Weight ``c`` of GAIC's penalty ``c p / (L - p - 1)``, chosen on random stages
 #: 1000-1019 from 2, 2.5, 3, 3.5, 4 (``benchmarks/generalisation_selection.py``).
 GAIC_PENALTY = 3.5
+
+#: Weight of a candidate's own Lemma-2 variance in the ``"pmse"`` predicted
+#: squared error, chosen on random stages 1000-1019 from 1.5, 2, 2.5, 3
+#: (``benchmarks/generalisation_selection.py``).
+PMSE_VARIANCE_WEIGHT = 2.0
 
 
 @dataclass
@@ -230,6 +274,13 @@ def local_model_criterion(
         raise ValueError(
             f"`criterion` must be one of {CRITERIA}. Got {criterion!r} instead."
         )
+    if criterion == "pmse":
+        raise ValueError(
+            "The 'pmse' criterion compares each candidate with a reference "
+            "candidate of the grid, so it has no value for one layout alone. "
+            "Use LRMBeyondNyquistCV(criterion='pmse'), or one of "
+            f"{CRITERIA[:-1]} here."
+        )
     if layout.dof < _MIN_DOF[criterion]:
         raise ValueError(
             f"The {criterion!r} criterion needs at least {_MIN_DOF[criterion]} "
@@ -274,6 +325,8 @@ def _combine(per_bin, well_posed, layout, criterion, n_slow) -> float:
         return mean / (1.0 - p / L) ** 2
     if criterion == "aicc":
         return float(np.log(mean) + (L + p) / (L - p - 1))
+    if criterion == "pmse":  # median over windows (per-band regions)
+        return float(np.median(per_bin[well_posed]))
     if criterion == "gaic":
         # floor at round-off of the mean: an exact in-class fit (rss = 0) in
         # one window must not make the criterion -inf
@@ -283,12 +336,75 @@ def _combine(per_bin, well_posed, layout, criterion, n_slow) -> float:
     return mean
 
 
+def _pmse_ingredients(U, Y, layout, *, chunk_size=None):
+    """Band FRFs, their Lemma-2 variances and the well-posed mask per window.
+
+    Returns arrays of shape ``(n_rows, M//2+1, n_u F)`` (band values and
+    variances) and ``(n_rows, M//2+1)`` (mask), one row per output channel.
+    """
+    Y = np.asarray(Y)
+    rows = [Y] if Y.ndim == 2 else [Y[:, o] for o in range(Y.shape[1])]
+    systems, variances, oks = [], [], []
+    for Y_o in rows:
+        _, ok, system, var = _local_criteria(U, Y_o, layout, chunk_size=chunk_size,
+                                             variance=True)
+        systems.append(system)
+        variances.append(var)
+        oks.append(ok)
+    return np.stack(systems), np.stack(variances), np.stack(oks)
+
+
+def _pmse_reference(layouts, n_invalid) -> int:
+    """The ``"pmse"`` reference: of the scored candidates with the fewest
+    invalid windows, the widest window, then the most parameters."""
+    todo = [i for i, layout in enumerate(layouts) if layout is not None]
+    fewest = min(n_invalid[i] for i in todo)
+    return max((i for i in todo if n_invalid[i] == fewest),
+               key=lambda i: (layouts[i].window, layouts[i].n_params, -i))
+
+
+def _pmse_criteria(ingredients: dict, layouts) -> dict:
+    """``"pmse"`` criterion of every scored candidate.
+
+    ``ingredients[i]`` is :func:`_pmse_ingredients` of candidate ``i``. Per
+    band value ``G_c`` (window, band, output row) the predicted squared error
+    is ``max(|G_c - G_r|^2 - var_r, 0) + w var_c`` over ``|G_r|^2``, with
+    ``G_r`` the reference candidate (:func:`_pmse_reference`) and ``w`` =
+    :data:`PMSE_VARIANCE_WEIGHT`; the value is the median over the band values
+    valid for both (the DC band excluded). Returns ``{i: LocalCriterion}``
+    (``per_bin``: per window the median over its bands).
+    """
+    n_invalid = {i: int(np.count_nonzero(~ok)) for i, (_, _, ok)
+                 in ingredients.items()}
+    full = [layouts[i] if i in ingredients else None for i in range(len(layouts))]
+    ref_system, ref_var, ref_ok = ingredients[_pmse_reference(full, n_invalid)]
+    ref_size = np.abs(ref_system) ** 2
+    out = {}
+    for i, (system, var, ok) in ingredients.items():
+        both = (ok & ref_ok)[..., None] & (ref_size > 0)
+        both[:, 0, ::layouts[i].F] = False  # DC bands (k = 0, f = 0): not used
+        with np.errstate(invalid="ignore", divide="ignore"):
+            bias2 = np.maximum(np.abs(system - ref_system) ** 2 - ref_var, 0.0)
+            rel = (bias2 + PMSE_VARIANCE_WEIGHT * var) / ref_size
+        rel = np.where(both, rel, np.nan)
+        valid = both.any(axis=-1)
+        per_bin = np.full(ok.shape, np.nan)
+        per_bin[valid] = np.nanmedian(rel[valid], axis=-1)
+        value = float(np.median(rel[both])) if both.any() else np.inf
+        if per_bin.shape[0] == 1:
+            per_bin = per_bin[0]
+        out[i] = LocalCriterion(value=value, per_bin=per_bin,
+                                n_invalid=n_invalid[i])
+    return out
+
+
 def _combine_mask(per_bin, well_posed, *, layout, criterion, n_slow) -> float:
     """:func:`_combine` on the windows of ``well_posed`` only."""
     return _combine(per_bin, well_posed, layout, criterion, n_slow)
 
 
-def _local_criteria(U, Y, layout, *, chunk_size=None, leverage=True):
+def _local_criteria(U, Y, layout, *, chunk_size=None, leverage=True,
+                    variance=False):
     """Per-window ingredients of the criteria, the well-posed mask, band FRFs.
 
     With ``leverage`` (needed by PRESS) every window is solved by QR with its
@@ -308,9 +424,13 @@ def _local_criteria(U, Y, layout, *, chunk_size=None, leverage=True):
     system : ndarray of shape (M//2+1, n_u F), complex
         ``G(k+fM)`` of each window (as :func:`fit_local_models`; band
         ``b = i F + f`` is input ``i``).
+    system_var : ndarray of shape (M//2+1, n_u F)
+        Only with ``variance`` (which implies ``leverage``): the Lemma-2
+        variance of ``system``, ``F^2 (A^H A)^-1_bb rss / (L - p)``.
     """
     P, M = Y.shape
     slow_bins = half_slow_bins(M)
+    leverage = leverage or variance
     if not leverage:
         fit = fit_local_models(U, Y, layout, slow_bins=slow_bins,
                                chunk_size=chunk_size, solver="normal")
@@ -326,6 +446,7 @@ def _local_criteria(U, Y, layout, *, chunk_size=None, leverage=True):
     per_bin = {name: np.empty(slow_bins.size) for name in ("press", "residual")}
     well_posed = np.empty(slow_bins.size, dtype=bool)
     system = np.empty((slow_bins.size, layout.n_bands), dtype=complex)
+    system_var = np.empty((slow_bins.size, layout.n_bands))
     for start in range(0, slow_bins.size, chunk_size):
         bins = slow_bins[start : start + chunk_size]
         chunk = slice(start, start + bins.size)
@@ -346,6 +467,8 @@ def _local_criteria(U, Y, layout, *, chunk_size=None, leverage=True):
             loo = np.abs(centre / (1.0 - sol.leverage[:, centre_rows])) ** 2
         per_bin["press"][chunk] = loo.sum(axis=1) / (P * M)
         per_bin["residual"][chunk] = sol.rss / (layout.n_equations * M)
+        system_var[chunk] = (layout.F**2 * sol.gram_inv_diag[:, : layout.n_bands]
+                             * (sol.rss / layout.dof)[:, None])
     excited = (window_excitation(U, slow_bins, layout) > EXCITATION_TOL).all(axis=1)
     well_posed &= excited
     for values in per_bin.values():
@@ -353,6 +476,9 @@ def _local_criteria(U, Y, layout, *, chunk_size=None, leverage=True):
     for values in per_bin.values():
         values[~well_posed] = np.nan
     system[~well_posed] = np.nan
+    if variance:
+        system_var[~well_posed] = np.nan
+        return per_bin, well_posed, system, system_var
     return per_bin, well_posed, system
 
 
@@ -559,10 +685,22 @@ class _LocalModelCV(_BaseFRFEstimator):
         U = dft(u).reshape(P, n_u * N)  # inputs concatenated
         Y = dft(y)[:, 0] if y.shape[1] == 1 else dft(y)  # (P, M) or (P, n_y, M)
         todo = [i for i, layout in enumerate(layouts) if layout is not None]
-        results = Parallel(n_jobs=params["n_jobs"])(
-            delayed(local_model_criterion)(U, Y, layouts[i], criterion=criterion)
-            for i in progress(todo, enabled=params["verbose"], desc="candidates")
-        )
+        if criterion == "pmse":
+            ingredients = Parallel(n_jobs=params["n_jobs"])(
+                delayed(_pmse_ingredients)(U, Y, layouts[i])
+                for i in progress(todo, enabled=params["verbose"],
+                                  desc="candidates")
+            )
+            scored = _pmse_criteria(dict(zip(todo, ingredients, strict=True)),
+                                    layouts)
+            results = [scored[i] for i in todo]
+        else:
+            results = Parallel(n_jobs=params["n_jobs"])(
+                delayed(local_model_criterion)(U, Y, layouts[i],
+                                               criterion=criterion)
+                for i in progress(todo, enabled=params["verbose"],
+                                  desc="candidates")
+            )
         value = np.full(len(candidates), np.inf)
         n_invalid = np.full(len(candidates), half_slow_bins(M).size * y.shape[1])
         for i, res in zip(todo, results, strict=True):
@@ -720,9 +858,10 @@ class LRMBeyondNyquistCV(_LocalModelCV):
     """LRM beyond Nyquist with the window and degrees chosen from the data.
 
     Every combination of the candidate values is scored on the data by a
-    closed-form criterion of its local problems (GAIC by default; see the
-    module notes), the best one is refitted with :class:`LRMBeyondNyquist`, and its
-    fitted attributes are copied, so this estimator is used like an
+    closed-form criterion of its local problems (the predicted relative
+    error ``"pmse"`` by default; see the module notes), the best one is
+    refitted with :class:`LRMBeyondNyquist`, and its fitted attributes are
+    copied, so this estimator is used like an
     ``LRMBeyondNyquist`` (``frf_``, ``frf_std_``, ``predict``, ``score``,
     ``to_frd``).
 
@@ -741,10 +880,15 @@ class LRMBeyondNyquistCV(_LocalModelCV):
         Candidate ``R_e``. The default grid (64 candidates) contains the
         paper's Table I setting (18, 4, 4, 7) and the ``R_g >= R_e``
         setting (5, 5, 4) of ``docs/method.md``.
-    criterion : {"gaic", "aicc", "gcv", "press"}, default="gaic"
-        See :func:`local_model_criterion` and the module notes. ``"gaic"``
-        (the default since this release; ``"aicc"`` before) generalised best
-        to random stages nobody tuned on.
+    criterion : {"pmse", "gaic", "aicc", "gcv", "press"}, default="pmse"
+        See :func:`local_model_criterion` and the module notes. ``"pmse"``
+        (the default since this release; ``"gaic"`` and ``"aicc"`` before)
+        generalised best to random stages nobody tuned on: each candidate's
+        predicted relative squared FRF error (its bias against the widest,
+        richest candidate of the grid plus twice its Lemma-2 variance), median
+        over the band values. It solves the windows by QR: a fit takes about
+        2.5x the CPU time of a ``"gaic"`` fit (1.7-2.1 s against 0.7-0.8 s
+        for the default grid, M = 400, F = 2-3).
     n_jobs : int or None, default=None
         Candidates scored in parallel with joblib (``None``: the active joblib
         backend's default, 1 outside a ``parallel_config`` context; ``-1``: all
@@ -879,7 +1023,7 @@ class LRMBeyondNyquistCV(_LocalModelCV):
         num_degrees=(2, 4, 5, 6),
         transient_degrees=None,
         den_degrees=(2, 4, 7, 8),
-        criterion: str = "gaic",
+        criterion: str = "pmse",
         n_jobs: int | None = None,
         verbose: bool = False,
         per_band: bool = False,
