@@ -154,45 +154,72 @@ def _eiv_range_py(
                 ok[w] = ok_shared[w]
             _compiled._cholesky_rows(Hr, Hi, scale2, ok, tol2, n_shared, p)
             _inverse_rows(Hr, Hi, n_shared, p, Kr, Ki, acc_r, acc_i)
-            # 3. G^-1 = K^H K (lower): the shared K11^H K11 plus the sums
-            # over this row's rows of K
-            _lower_gram_rows(Kr, Ki, n_shared, p, p, Cr, Ci, acc_r, acc_i)
-            for e in range(n_packed_shared):  # (the leading block, packed)
-                for w in range(LANES):
-                    Cr[e, w] += Sh_r[e, w]
-                    Ci[e, w] += Sh_i[e, w]
-            # 4. H = A^H diag(w) A with this row's w(r) = |e(x_r)|^2: every
-            # pair series times w before its moments
+            # 3.-5. this row's w(r) = |e(x_r)|^2, then its G^-1, H, trace
+            # and band block (_row_terms)
             _denominator_weight(den[o], powers, first, wt)
-            for t in range(w_kind.shape[0]):
-                _compiled._pair_series(sr, si, w_kind[t], w_a[t], w_b[t], Sr, Si)
-                for r in range(L):
-                    for w in range(LANES):
-                        Sr[r, w] *= wt[r, w]
-                        Si[r, w] *= wt[r, w]
-                _compiled._moments(Sr, Si, q_basis, w_off[t], w_nd[t], Er, Ei,
-                                   Or, Oi, mwr, mwi)
-            _compiled._gram_entries(mwr, mwi, w_ptr, w_mom, w_coef, w_conj,
-                                    w_const, 0, w_const.shape[0], Wr, Wi)
-            # 5. the outputs of the real lanes
-            _trace_of_product(Cr, Ci, Wr, Wi, p, acc_r)
+            _row_terms(
+                Kr, Ki, Sh_r, Sh_i, Cr, Ci, n_shared, p, sr, si, wt, w_kind,
+                w_a, w_b, w_nd, w_off, w_ptr, w_mom, w_coef, w_conj, w_const,
+                q_basis, Sr, Si, Er, Ei, Or, Oi, mwr, mwi, Wr, Wi, acc_r, acc_i,
+                P, first, band_first, n_bands, cbr, cbi, ybr, ybi, qr, qi,
+                trace[o], wsum[o], wmin[o], wmax[o], lead[o],
+            )
             for w in range(LANES):
-                row = first + w
-                if row < B:
-                    trace[o, row] = acc_r[w]
-                    ok_out[o, row] = ok[w]
-                    total = 0.0
-                    lo = np.inf
-                    hi = 0.0
-                    for r in range(L):
-                        total += wt[r, w]
-                        lo = min(lo, wt[r, w])
-                        hi = max(hi, wt[r, w])
-                    wsum[o, row] = P * total
-                    wmin[o, row] = lo
-                    wmax[o, row] = hi
-            _band_sandwich(Cr, Ci, Wr, Wi, p, band_first, n_bands, first, B,
-                           cbr, cbi, ybr, ybi, qr, qi, lead[o])
+                if first + w < B:
+                    ok_out[o, first + w] = ok[w]
+
+
+def _row_terms_py(
+    Kr, Ki, Sh_r, Sh_i, Cr, Ci, n_shared, p, sr, si, wt, w_kind, w_a, w_b, w_nd,
+    w_off, w_ptr, w_mom, w_coef, w_conj, w_const, q_basis, Sr, Si, Er, Ei, Or,
+    Oi, mwr, mwi, Wr, Wi, acc_r, acc_i, P, first, band_first, n_bands, cbr, cbi,
+    ybr, ybi, qr, qi, trace, wsum, wmin, wmax, lead,
+):
+    """One output row's terms of the windows ``first + w``, given ``K = L^-1``
+    (its rows ``n_shared..p-1`` this row's), the shared ``K11^H K11`` in
+    ``Sh`` and the row's squared denominator ``wt``: ``G^-1`` (in ``C``),
+    ``H`` (in ``W``), ``trace``, ``wsum``/``wmin``/``wmax`` and the band block
+    ``lead`` of the real lanes (shared by :func:`_eiv_range_py` and the fused
+    :func:`_solve_eiv_range_py`)."""
+    L = wt.shape[0]
+    B = trace.shape[0]
+    n_packed_shared = n_shared * (n_shared + 1) // 2
+    # G^-1 = K^H K (lower): the shared K11^H K11 plus the sums over this
+    # row's rows of K
+    _lower_gram_rows(Kr, Ki, n_shared, p, p, Cr, Ci, acc_r, acc_i)
+    for e in range(n_packed_shared):  # (the leading block, packed)
+        for w in range(LANES):
+            Cr[e, w] += Sh_r[e, w]
+            Ci[e, w] += Sh_i[e, w]
+    # H = A^H diag(w) A: every pair series times w before its moments
+    for t in range(w_kind.shape[0]):
+        _compiled._pair_series(sr, si, w_kind[t], w_a[t], w_b[t], Sr, Si)
+        for r in range(L):
+            for w in range(LANES):
+                Sr[r, w] *= wt[r, w]
+                Si[r, w] *= wt[r, w]
+        _compiled._moments(Sr, Si, q_basis, w_off[t], w_nd[t], Er, Ei, Or, Oi,
+                           mwr, mwi)
+    _compiled._gram_entries(mwr, mwi, w_ptr, w_mom, w_coef, w_conj, w_const, 0,
+                            w_const.shape[0], Wr, Wi)
+    # the outputs of the real lanes
+    _trace_of_product(Cr, Ci, Wr, Wi, p, acc_r)
+    for w in range(LANES):
+        row = first + w
+        if row < B:
+            trace[row] = acc_r[w]
+            total = 0.0
+            lo = np.inf
+            hi = 0.0
+            for r in range(L):
+                total += wt[r, w]
+                lo = min(lo, wt[r, w])
+                hi = max(hi, wt[r, w])
+            wsum[row] = P * total
+            wmin[row] = lo
+            wmax[row] = hi
+    _band_sandwich(Cr, Ci, Wr, Wi, p, band_first, n_bands, first, B, cbr, cbi,
+                   ybr, ybi, qr, qi, lead)
 
 
 def _solve_eiv_range_py(
@@ -292,39 +319,14 @@ def _solve_eiv_range_py(
             # eiv terms of this row (steps 2-5 of _eiv_range) from the same
             # factor and window data, with the refined denominator (in dr/di)
             _inverse_rows(Hr, Hi, n_shared, p, Kr, Ki, acc_r, acc_i)
-            _lower_gram_rows(Kr, Ki, n_shared, p, p, Cr, Ci, acc_r, acc_i)
-            for e in range(n_packed_shared):
-                for w in range(LANES):
-                    Cr[e, w] += Sh_r[e, w]
-                    Ci[e, w] += Sh_i[e, w]
             _lane_denominator_weight(dr, di, den_cols, ok, powers, wt)
-            for t in range(w_kind.shape[0]):
-                _compiled._pair_series(sr, si, w_kind[t], w_a[t], w_b[t], Sr, Si)
-                for r in range(L):
-                    for w in range(LANES):
-                        Sr[r, w] *= wt[r, w]
-                        Si[r, w] *= wt[r, w]
-                _compiled._moments(Sr, Si, q_basis, w_off[t], w_nd[t], Er, Ei,
-                                   Or, Oi, mwr, mwi)
-            _compiled._gram_entries(mwr, mwi, w_ptr, w_mom, w_coef, w_conj,
-                                    w_const, 0, w_const.shape[0], Wr, Wi)
-            _trace_of_product(Cr, Ci, Wr, Wi, p, acc_r)
-            for w in range(LANES):
-                row = first + w
-                if row < B:
-                    trace[o, row] = acc_r[w]
-                    total = 0.0
-                    lo = np.inf
-                    hi = 0.0
-                    for r in range(L):
-                        total += wt[r, w]
-                        lo = min(lo, wt[r, w])
-                        hi = max(hi, wt[r, w])
-                    wsum[o, row] = P * total
-                    wmin[o, row] = lo
-                    wmax[o, row] = hi
-            _band_sandwich(Cr, Ci, Wr, Wi, p, band_first, n_bands, first, B,
-                           cbr, cbi, ybr, ybi, qr, qi, lead[o])
+            _row_terms(
+                Kr, Ki, Sh_r, Sh_i, Cr, Ci, n_shared, p, sr, si, wt, w_kind,
+                w_a, w_b, w_nd, w_off, w_ptr, w_mom, w_coef, w_conj, w_const,
+                q_basis, Sr, Si, Er, Ei, Or, Oi, mwr, mwi, Wr, Wi, acc_r, acc_i,
+                P, first, band_first, n_bands, cbr, cbi, ybr, ybi, qr, qi,
+                trace[o], wsum[o], wmin[o], wmax[o], lead[o],
+            )
 
 
 def _lane_denominator_weight_py(dr, di, den_cols, ok, powers, wt):
@@ -490,6 +492,7 @@ if _compiled.AVAILABLE:  # pragma: no branch
     _lower_gram_rows = njit(**_opts)(_lower_gram_rows_py)
     _trace_of_product = njit(**_opts)(_trace_of_product_py)
     _band_sandwich = njit(**_opts)(_band_sandwich_py)
+    _row_terms = njit(**_opts)(_row_terms_py)
     _eiv_range = njit(**_opts)(_eiv_range_py)
     _lane_denominator_weight = njit(**_opts)(_lane_denominator_weight_py)
     _solve_eiv_range = njit(**_opts)(_solve_eiv_range_py)
