@@ -88,34 +88,15 @@ def _eiv_range_py(
     Oi = np.empty((n + 1, LANES), f64)
     mr = np.empty((g_n_moments, LANES), f64)
     mi = np.empty((g_n_moments, LANES), f64)
-    mwr = np.empty((w_n_moments, LANES), f64)
-    mwi = np.empty((w_n_moments, LANES), f64)
     n_packed = p * (p + 1) // 2
     Hr = np.empty((n_packed, LANES), f64)
     Hi = np.empty((n_packed, LANES), f64)
-    Wr = np.empty((n_packed, LANES), f64)
-    Wi = np.empty((n_packed, LANES), f64)
     scale2 = np.empty((p, LANES), f64)
     ok_shared = np.empty(LANES, np.bool_)
     ok = np.empty(LANES, np.bool_)
     k = np.empty(LANES, np.int64)
-    wt = np.empty((L, LANES), f64)
-    # K = L^-1, its shared Gram K11^H K11 and C = G^-1: packed lower
-    n_packed_shared = n_shared * (n_shared + 1) // 2
-    Kr = np.empty((n_packed, LANES), f64)
-    Ki = np.empty((n_packed, LANES), f64)
-    Sh_r = np.empty((n_packed_shared, LANES), f64)
-    Sh_i = np.empty((n_packed_shared, LANES), f64)
-    Cr = np.empty((n_packed, LANES), f64)
-    Ci = np.empty((n_packed, LANES), f64)
-    cbr = np.empty((p, n_bands, LANES), f64)
-    cbi = np.empty((p, n_bands, LANES), f64)
-    ybr = np.empty((p, n_bands, LANES), f64)
-    ybi = np.empty((p, n_bands, LANES), f64)
-    qr = np.empty((n_bands, n_bands, LANES), f64)
-    qi = np.empty((n_bands, n_bands, LANES), f64)
-    acc_r = np.empty(LANES, f64)
-    acc_i = np.empty(LANES, f64)
+    (mwr, mwi, Wr, Wi, Kr, Ki, Sh_r, Sh_i, Cr, Ci, cbr, cbi, ybr, ybi, qr, qi,
+     acc_r, acc_i, wt) = _row_scratch(p, n_shared, n_bands, L, w_n_moments)
     B = bins.shape[0]
     shared_entries = n_shared * (n_shared + 1) // 2
     n_g_pairs = g_kind.shape[0]
@@ -167,6 +148,29 @@ def _eiv_range_py(
             for w in range(LANES):
                 if first + w < B:
                     ok_out[o, first + w] = ok[w]
+
+
+def _row_scratch_py(p, n_shared, n_bands, L, w_n_moments):
+    """Work arrays of :func:`_row_terms_py`: the weighted moments and ``H``
+    (``W``), ``K = L^-1``, the shared ``K11^H K11`` (``Sh``) and ``G^-1``
+    (``C``), packed lower, the band-block temporaries, two lane accumulators
+    and the squared denominator ``wt``."""
+    f64 = np.float64
+    n_packed = p * (p + 1) // 2
+    n_packed_shared = n_shared * (n_shared + 1) // 2
+    return (
+        np.empty((w_n_moments, LANES), f64), np.empty((w_n_moments, LANES), f64),
+        np.empty((n_packed, LANES), f64), np.empty((n_packed, LANES), f64),
+        np.empty((n_packed, LANES), f64), np.empty((n_packed, LANES), f64),
+        np.empty((n_packed_shared, LANES), f64),
+        np.empty((n_packed_shared, LANES), f64),
+        np.empty((n_packed, LANES), f64), np.empty((n_packed, LANES), f64),
+        np.empty((p, n_bands, LANES), f64), np.empty((p, n_bands, LANES), f64),
+        np.empty((p, n_bands, LANES), f64), np.empty((p, n_bands, LANES), f64),
+        np.empty((n_bands, n_bands, LANES), f64),
+        np.empty((n_bands, n_bands, LANES), f64),
+        np.empty(LANES, f64), np.empty(LANES, f64), np.empty((L, LANES), f64),
+    )
 
 
 def _row_terms_py(
@@ -241,30 +245,11 @@ def _solve_eiv_range_py(
     (sr, si, Sr, Si, Er, Ei, Or, Oi, mr, mi, Hr, Hi, gr, gi, xr, xi, dr, di,
      scale2, polyr, polyi, resr, resi, ok_shared, ok, change_num, change_den, k,
      tr, ti, cr, ci) = s
-    f64 = np.float64
-    n_packed = p * (p + 1) // 2
     n_packed_shared = n_shared * (n_shared + 1) // 2
     n_bands = F
     band_first = n_shared - n_centre
-    mwr = np.empty((w_n_moments, LANES), f64)
-    mwi = np.empty((w_n_moments, LANES), f64)
-    Wr = np.empty((n_packed, LANES), f64)
-    Wi = np.empty((n_packed, LANES), f64)
-    Kr = np.empty((n_packed, LANES), f64)
-    Ki = np.empty((n_packed, LANES), f64)
-    Sh_r = np.empty((n_packed_shared, LANES), f64)
-    Sh_i = np.empty((n_packed_shared, LANES), f64)
-    Cr = np.empty((n_packed, LANES), f64)
-    Ci = np.empty((n_packed, LANES), f64)
-    cbr = np.empty((p, n_bands, LANES), f64)
-    cbi = np.empty((p, n_bands, LANES), f64)
-    ybr = np.empty((p, n_bands, LANES), f64)
-    ybi = np.empty((p, n_bands, LANES), f64)
-    qr = np.empty((n_bands, n_bands, LANES), f64)
-    qi = np.empty((n_bands, n_bands, LANES), f64)
-    acc_r = np.empty(LANES, f64)
-    acc_i = np.empty(LANES, f64)
-    wt = np.empty((L, LANES), f64)
+    (mwr, mwi, Wr, Wi, Kr, Ki, Sh_r, Sh_i, Cr, Ci, cbr, cbi, ybr, ybi, qr, qi,
+     acc_r, acc_i, wt) = _row_scratch(p, n_shared, n_bands, L, w_n_moments)
     B = bins.shape[0]
     n_pairs = pair_kind.shape[0]
     shared_entries = n_packed_shared
@@ -493,6 +478,7 @@ if _compiled.AVAILABLE:  # pragma: no branch
     _trace_of_product = njit(**_opts)(_trace_of_product_py)
     _band_sandwich = njit(**_opts)(_band_sandwich_py)
     _row_terms = njit(**_opts)(_row_terms_py)
+    _row_scratch = njit(**_opts)(_row_scratch_py)
     _eiv_range = njit(**_opts)(_eiv_range_py)
     _lane_denominator_weight = njit(**_opts)(_lane_denominator_weight_py)
     _solve_eiv_range = njit(**_opts)(_solve_eiv_range_py)
