@@ -194,19 +194,12 @@ def record_ingredients(system, F: int, seed: int, grid=None, *,
         ``relvar`` the Lemma-2 variance factor over |G_hat|^2 summed over
         bands); ``layouts``; ``snr_db``; ``N``.
     """
-    rng = np.random.default_rng(seed)
     N = SLOW_SAMPLES * F
-    snr = float(rng.uniform(*SNR_RANGE))
+    u, y_l, snr = regenerate_record(system, F, seed, open_loop=open_loop,
+                                    return_snr=True)
     G = true_frf(system, N)
-    amplitude = None
-    if open_loop:
-        size = np.abs(G)
-        amplitude = 1.0 / np.maximum(size, 1e-6 * size.max())
-    u = multisine(N, rng=rng, amplitude=amplitude)
-    sim = simulate(system, u, F, snr_db=snr, rng=rng,
-                   x0=periodic_state(system, u) if open_loop else None)
     U = np.fft.fft(u)[None]
-    Y = np.fft.fft(sim.y_l)[None]
+    Y = np.fft.fft(y_l)[None]
     grid = default_grid(F) if grid is None else grid
     usable = np.isfinite(G) & (np.abs(G) > 0)
     usable[0] = False
@@ -231,11 +224,29 @@ def record_ingredients(system, F: int, seed: int, grid=None, *,
 
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            cv = LRMBeyondNyquistCV(per_band=True).fit(u, sim.y_l, F)
+            cv = LRMBeyondNyquistCV(per_band=True).fit(u, y_l, F)
         r = np.abs(cv.frf_ - G) / np.abs(np.where(usable, G, 1.0))
         r[~(usable & cv.valid_)] = np.nan
         out["per_band_error"] = float(np.nanmedian(r))
     return out
+
+
+def regenerate_record(system, F: int, seed: int, *, open_loop: bool = False,
+                      return_snr: bool = False):
+    """The fast input and slow output ``(u, y_l)`` of the record of
+    :func:`record_ingredients` (the same random draws), and its SNR (dB)
+    with ``return_snr``."""
+    rng = np.random.default_rng(seed)
+    N = SLOW_SAMPLES * F
+    snr = float(rng.uniform(*SNR_RANGE))
+    amplitude = None
+    if open_loop:
+        size = np.abs(true_frf(system, N))
+        amplitude = 1.0 / np.maximum(size, 1e-6 * size.max())
+    u = multisine(N, rng=rng, amplitude=amplitude)
+    sim = simulate(system, u, F, snr_db=snr, rng=rng,
+                   x0=periodic_state(system, u) if open_loop else None)
+    return (u, sim.y_l, snr) if return_snr else (u, sim.y_l)
 
 
 def _ingredients(U, Y, layout):
@@ -402,7 +413,21 @@ def selection_table(seeds, *, criteria=CRITERIA, n_jobs: int = 1,
         if "per_band_error" in rec:
             row["per_band"] = rec["per_band_error"] / rec["errors"][oracle]
         rows.append(row)
-    # best single fixed setting: keyed by the setting (grids differ with F)
+    best_key, best_ratios = fixed_setting(records)
+    for row, ratio in zip(rows, best_ratios, strict=True):
+        row["fixed"] = ratio
+    names = (*criteria, "fixed") + (("per_band",) if "per_band" in rows[0] else ())
+    summary = {name: (float(np.mean([r[name] for r in rows])),
+                      float(np.max([r[name] for r in rows])))
+               for name in names}
+    return {"rows": rows, "summary": summary, "fixed": best_key,
+            "records": records}
+
+
+def fixed_setting(records) -> tuple:
+    """The one setting of the grid (in every record's grid) with the lowest
+    mean error ratio to the oracle, and its ratio per record."""
+    # keyed by the setting (grids differ with F)
     keys = {tuple(c.values()) for rec in records for c in rec["grid"]}
     best_key, best_ratios = None, None
     for key in sorted(keys):
@@ -416,14 +441,7 @@ def selection_table(seeds, *, criteria=CRITERIA, n_jobs: int = 1,
         if ratios is not None and (best_ratios is None
                                    or np.mean(ratios) < np.mean(best_ratios)):
             best_key, best_ratios = key, ratios
-    for row, ratio in zip(rows, best_ratios, strict=True):
-        row["fixed"] = ratio
-    names = (*criteria, "fixed") + (("per_band",) if "per_band" in rows[0] else ())
-    summary = {name: (float(np.mean([r[name] for r in rows])),
-                      float(np.max([r[name] for r in rows])))
-               for name in names}
-    return {"rows": rows, "summary": summary, "fixed": best_key,
-            "records": records}
+    return best_key, best_ratios
 
 
 def _parse_seeds(text: str) -> list:

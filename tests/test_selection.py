@@ -164,6 +164,43 @@ def test_pmse_from_brute_force_band_values():
     assert cv.best_index_ == int(np.argmin(cv.cv_results_["criterion"]))
 
 
+@pytest.mark.parametrize("n_outputs", [1, 2])
+def test_pmse_ingredients_equal_the_qr_solve(n_outputs):
+    """PMSE's band values and Lemma-2 variances come from the estimator's
+    closed form (normal equations); the QR solve with leverages gives the same
+    values (1e-9 relative), variances (1e-6) and well-posed windows, for one
+    output and for two output rows (two experiments, two inputs)."""
+    from lrmfrf.estimators.selection import _local_criteria, _pmse_ingredients
+
+    rng = np.random.default_rng(21)
+    if n_outputs == 1:
+        U, Y = _dfts(*_data(rng))
+        layout = LocalModelLayout(F=F, half_window=12, num_degree=2,
+                                  transient_degree=2, den_degree=4)
+        rows = [Y]
+    else:
+        u = rng.standard_normal((2, 2, N))
+        mix = np.array([[1.0, 0.5], [0.7, -1.0]])  # output rows from the inputs
+        y = np.stack([mix @ simulate_resonant(u[p], F, 0.0, rng) for p in range(2)])
+        y = y + 0.01 * rng.standard_normal(y.shape)
+        U = np.fft.fft(u, axis=-1).reshape(2, 2 * N)
+        Y = np.fft.fft(y, axis=-1)  # (P, n_y, M)
+        layout = LocalModelLayout(F=F, n_experiments=2, n_inputs=2,
+                                  half_window=12, num_degree=2,
+                                  transient_degree=2, den_degree=2)
+        rows = [Y[:, o] for o in range(2)]
+    system, var, ok = _pmse_ingredients(U, Y, layout)
+    assert system.shape == (n_outputs, M // 2 + 1, layout.n_bands)
+    for o, Y_o in enumerate(rows):
+        _, ok_qr, system_qr, var_qr = _local_criteria(U, Y_o, layout,
+                                                      variance=True)
+        np.testing.assert_array_equal(ok[o], ok_qr)
+        assert ok_qr.sum() > M // 4
+        np.testing.assert_allclose(system[o][ok_qr], system_qr[ok_qr], rtol=1e-9)
+        np.testing.assert_allclose(var[o][ok_qr], var_qr[ok_qr], rtol=1e-6)
+        assert np.isnan(system[o][~ok_qr]).all()
+
+
 def test_pmse_has_no_value_for_one_layout():
     rng = np.random.default_rng(12)
     layout = LocalModelLayout(F=F, half_window=8, num_degree=1,
