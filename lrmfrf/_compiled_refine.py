@@ -251,18 +251,18 @@ def _sk_range_py(
         )
 
 
-def _sk_group_py(
+def _sk_part_py(
     U, Y, bins, theta0, closed_rss, start_system, jump_limit, radius,
-    weights, col_base, data_index, F, n_centre, q_basis, pair_kind, pair_a,
-    pair_b, pair_nd, pair_off, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const,
-    rhs_ptr, rhs_mom, rhs_coef, band_int, den_int, den_map,
-    system_factor, guard_radius, iterations, lm_iterations, tol, keep_best,
-    exact_tol, theta_out, cost_out, flags_out, cvar_out, history, n_run,
-    lm_history, n_run_lm, lay, lm_stop, lm_state, lm_start, pend, group, s,
+    weights, col_base, data_index, F, q_basis, pair_kind, pair_a, pair_b,
+    pair_nd, pair_off, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const,
+    rhs_ptr, rhs_mom, rhs_coef, band_int, den_int, den_map, system_factor,
+    guard_radius, iterations, tol, keep_best, exact_tol, history, n_run, group,
+    s,
 ):
-    """SK for the windows ``bins[group*LANES:(group+1)*LANES]``, then LM up
-    to iteration ``lm_stop``; windows still active there are left in
-    ``pend`` for :func:`_lm_group`."""
+    """SK for the windows ``bins[group*LANES:(group+1)*LANES]`` (lane group
+    ``group``): the best estimate in ``bsr/bsi``, its cost in ``lane[1]``, the
+    flags in ``flag`` and the window rows in ``rowix`` of the scratch ``s``;
+    returns the number of windows in the group."""
     (sr, si, Sar, Sai, Tr, Ti, Er, Ei, Or, Oi, mr, mi, Hr, Hi, gr, gi, xr, xi,
      dr, di, scale2, polyr, polyi, resr, resi, Wt, er, ei, etr, eti, thr, thi,
      bsr, bsi, ok, k, lane, flag, tr, ti, work, hr, hi, Hsr, Hsi, gsr, gsi,
@@ -407,6 +407,33 @@ def _sk_group_py(
         history[group, it, 0] = total_sk
         history[group, it, 1] = total_oe
     n_run[group] = run
+    return count
+
+
+def _sk_group_py(
+    U, Y, bins, theta0, closed_rss, start_system, jump_limit, radius,
+    weights, col_base, data_index, F, n_centre, q_basis, pair_kind, pair_a,
+    pair_b, pair_nd, pair_off, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const,
+    rhs_ptr, rhs_mom, rhs_coef, band_int, den_int, den_map,
+    system_factor, guard_radius, iterations, lm_iterations, tol, keep_best,
+    exact_tol, theta_out, cost_out, flags_out, cvar_out, history, n_run,
+    lm_history, n_run_lm, lay, lm_stop, lm_state, lm_start, pend, group, s,
+):
+    """SK for the windows ``bins[group*LANES:(group+1)*LANES]``, then LM up
+    to iteration ``lm_stop``; windows still active there are left in
+    ``pend`` for :func:`_lm_group`."""
+    (sr, si, Sar, Sai, Tr, Ti, Er, Ei, Or, Oi, mr, mi, Hr, Hi, gr, gi, xr, xi,
+     dr, di, scale2, polyr, polyi, resr, resi, Wt, er, ei, etr, eti, thr, thi,
+     bsr, bsi, ok, k, lane, flag, tr, ti, work, hr, hi, Hsr, Hsi, gsr, gsi,
+     str_, sti, ds, lm_lane, need, Gtr, Gti, rbr, rbi, ebr, ebi, rowix) = s
+    count = _sk_part(
+        U, Y, bins, theta0, closed_rss, start_system, jump_limit, radius,
+        weights, col_base, data_index, F, q_basis, pair_kind, pair_a, pair_b,
+        pair_nd, pair_off, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const,
+        rhs_ptr, rhs_mom, rhs_coef, band_int, den_int, den_map, system_factor,
+        guard_radius, iterations, tol, keep_best, exact_tol, history, n_run,
+        group, s,
+    )
     lm_run = 0
     if lm_iterations > 0:
         lm_run = _lm_phase(
@@ -896,6 +923,7 @@ if AVAILABLE:  # pragma: no branch
     _keep_accepted = njit(**_opts)(_keep_accepted_py)
     _lm_phase = njit(**_opts)(_lm_phase_py)
     _finish_group = njit(**_opts)(_finish_group_py)
+    _sk_part = njit(**_opts)(_sk_part_py)
     _sk_group = njit(**_opts)(_sk_group_py)
     _sk_range = njit(**_opts)(_sk_range_py)
     _lm_group = njit(**_opts)(_lm_group_py)
