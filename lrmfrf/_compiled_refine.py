@@ -60,10 +60,9 @@ _LM_STAGES = (12, 20, 28, 36, 44)
 
 # LM refills a lane with the next window as soon as its window stops
 # (_lm_refill_range), so a lane group runs full until the windows of its task
-# are exhausted; with more than one thread, tasks per thread (each task's
-# group drains once at its end, several tasks balance the threads)
+# are exhausted; tasks per thread (each task's group drains once at its end)
 _LM_REFILL = True
-_REFILL_TASKS_PER_THREAD = 2
+_REFILL_TASKS_PER_THREAD = 1
 
 _DATA_DATA_ = _compiled._DATA_DATA
 _DATA_CONST_ = _compiled._DATA_CONST
@@ -1059,10 +1058,10 @@ def _lm_refill_range_py(
     rhs_ptr, rhs_mom, rhs_coef, n_moments, band_int, den_int, den_map,
     system_factor, guard_radius, iterations, lm_iterations, tol, keep_best,
     exact_tol, theta_out, cost_out, flags_out, cvar_out, history, n_run,
-    lm_history, n_run_lm, lay, task, first_group, stop_group,
+    lm_history, n_run_lm, lay, task, first_group, stop_group, stride,
 ):
-    """SK on the lane groups ``first_group..stop_group-1`` and guarded LM of
-    their windows with continuous lane refill (task ``task``).
+    """SK on the lane groups ``range(first_group, stop_group, stride)`` and
+    guarded LM of their windows with continuous lane refill (task ``task``).
 
     The SK groups run one at a time (:func:`_sk_part`, as :func:`_sk_group`);
     their windows enter the LM group lane by lane (:func:`_load_lane`): a
@@ -1126,7 +1125,7 @@ def _lm_refill_range_py(
                     n_fin = 0
             while not held[w]:  # the next window of the task that needs LM
                 if src_next == src_count:
-                    if group == stop_group:
+                    if group >= stop_group:
                         break
                     src_count = _sk_part(
                         U, Y, bins, theta0, closed_rss, start_system,
@@ -1142,7 +1141,7 @@ def _lm_refill_range_py(
                         data_index, F, src[21], src[22], src[54], src[55],
                     )
                     _denominator(src[21], src[22], den, src[56], src[57])
-                    group += 1
+                    group += stride
                     src_next = 0
                 v = src_next
                 src_next += 1
@@ -1465,20 +1464,18 @@ def sk_windows(
 
 
 def _refill_windows(args, lay, n_groups: int, n_threads: int, lm_iterations: int):
-    """:func:`sk_windows` with LM lane refill (:func:`_lm_refill_range`): the
-    lane groups split into contiguous tasks, one per thread on one thread,
-    else ``_REFILL_TASKS_PER_THREAD`` per thread (a task's LM group drains
-    once, when its windows are exhausted)."""
+    """:func:`sk_windows` with LM lane refill (:func:`_lm_refill_range`): one
+    task per thread, task ``t`` of ``T`` taking the lane groups ``t, t + T,
+    ...`` (interleaved, so that the tasks get windows from every part of the
+    band and about equal work; a task's LM group drains once, when its
+    windows are exhausted)."""
     theta_out, cost, flags, cvar, history, n_run = args[-8:-2]
-    n_tasks = 1 if n_threads <= 1 else n_threads * _REFILL_TASKS_PER_THREAD
-    n_tasks = max(1, min(n_tasks, n_groups))
-    bounds = np.linspace(0, n_groups, n_tasks + 1).round().astype(np.int64)
+    n_tasks = max(1, min(n_threads * _REFILL_TASKS_PER_THREAD, n_groups))
     lm_history = np.zeros((n_tasks, lm_iterations))
     n_run_lm = np.zeros(n_tasks, dtype=np.int64)
     _run_tasks(
         lambda task: _lm_refill_range(
-            *args[:-2], lm_history, n_run_lm, lay, task, bounds[task],
-            bounds[task + 1],
+            *args[:-2], lm_history, n_run_lm, lay, task, task, n_groups, n_tasks,
         ),
         [(task,) for task in range(n_tasks)], n_threads,
     )

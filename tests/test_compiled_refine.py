@@ -359,9 +359,9 @@ def test_lm_lane_refill_leaves_every_window_unchanged(
     groups that run every iteration without packing: the windows' iterates
     do not depend on their lane, neighbours or start time, so every result
     is equal bit for bit; the per-iteration cost sums are summed in another
-    order (1e-13). Three tasks of about four lane groups each, so windows
-    enter lanes freed mid-run and each task's group drains at its end
-    (checked: more windows than lanes per task, and some windows stop
+    order (1e-13). Three tasks of about four interleaved lane groups each,
+    so windows enter lanes freed mid-run and each task's group drains at its
+    end (checked: more windows than lanes per task, and some windows stop
     before the last iteration while others run on)."""
     from lrmfrf import _compiled_refine
     from lrmfrf.plants import wafer_stage
@@ -373,7 +373,7 @@ def test_lm_lane_refill_leaves_every_window_unchanged(
     refill = _compiled_refine._lm_refill_range
 
     def spy(*args):
-        tasks.append(args[-1] - args[-2])  # lane groups of the task
+        tasks.append(len(range(*args[-3:])))  # lane groups of the task
         return refill(*args)
 
     monkeypatch.setattr(_compiled_refine, "_lm_refill_range", spy)
