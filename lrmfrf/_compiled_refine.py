@@ -25,11 +25,16 @@ of basis ``S H S^T`` is formed; ``J^H res`` is the adjoint with the layout
 columns. The model is rebuilt only where a lane moved, from the residual kept
 at the estimate (the accepted trial's), and each iteration then costs one
 damped Cholesky solve (:func:`_lm_step`), one residual pass for the trial
-cost (:func:`_oe_cost`) and the guard. A lane group runs until its last
-lane stops, so after the iterations in ``_LM_STAGES`` the windows still
-active are packed densely into new groups (:func:`_lm_group`: gathered
-again, the model rebuilt from the estimate): the iterates of a window do not
-depend on its lane, and the results are bit for bit those without packing.
+cost (:func:`_oe_cost`) and the guard. A lane group would run until its
+last lane stops, so a lane whose window stops takes the next window of its
+task at once (:func:`_lm_refill_range`: the windows come from SK groups run
+one at a time, their results are written a full group at a time); every lane
+keeps its own iteration count. The iterates of a window do not depend on its
+lane, so the results are bit for bit those of groups that run every
+iteration. Without refill (``lm_refill=False``) the windows still active
+after the iterations in ``_LM_STAGES`` are packed densely into new groups
+instead (:func:`_lm_group`: gathered again, the model rebuilt from the
+estimate), with the same results.
 """
 
 from __future__ import annotations
@@ -52,6 +57,12 @@ _GROUPS_PER_TASK = 4
 # closed form's CPU time for LM50 against 39x without (one thread, loaded
 # machine; (8, 16, ..., 40), (10, 20, 30, 40), (12, 24, 35) within that noise)
 _LM_STAGES = (12, 20, 28, 36, 44)
+
+# LM refills a lane with the next window as soon as its window stops
+# (_lm_refill_range), so a lane group runs full until the windows of its task
+# are exhausted; tasks per thread (each task's group drains once at its end)
+_LM_REFILL = True
+_REFILL_TASKS_PER_THREAD = 1
 
 _DATA_DATA_ = _compiled._DATA_DATA
 _DATA_CONST_ = _compiled._DATA_CONST
@@ -251,18 +262,18 @@ def _sk_range_py(
         )
 
 
-def _sk_group_py(
+def _sk_part_py(
     U, Y, bins, theta0, closed_rss, start_system, jump_limit, radius,
-    weights, col_base, data_index, F, n_centre, q_basis, pair_kind, pair_a,
-    pair_b, pair_nd, pair_off, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const,
-    rhs_ptr, rhs_mom, rhs_coef, band_int, den_int, den_map,
-    system_factor, guard_radius, iterations, lm_iterations, tol, keep_best,
-    exact_tol, theta_out, cost_out, flags_out, cvar_out, history, n_run,
-    lm_history, n_run_lm, lay, lm_stop, lm_state, lm_start, pend, group, s,
+    weights, col_base, data_index, F, q_basis, pair_kind, pair_a, pair_b,
+    pair_nd, pair_off, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const,
+    rhs_ptr, rhs_mom, rhs_coef, band_int, den_int, den_map, system_factor,
+    guard_radius, iterations, tol, keep_best, exact_tol, history, n_run, group,
+    s,
 ):
-    """SK for the windows ``bins[group*LANES:(group+1)*LANES]``, then LM up
-    to iteration ``lm_stop``; windows still active there are left in
-    ``pend`` for :func:`_lm_group`."""
+    """SK for the windows ``bins[group*LANES:(group+1)*LANES]`` (lane group
+    ``group``): the best estimate in ``bsr/bsi``, its cost in ``lane[1]``, the
+    flags in ``flag`` and the window rows in ``rowix`` of the scratch ``s``;
+    returns the number of windows in the group."""
     (sr, si, Sar, Sai, Tr, Ti, Er, Ei, Or, Oi, mr, mi, Hr, Hi, gr, gi, xr, xi,
      dr, di, scale2, polyr, polyi, resr, resi, Wt, er, ei, etr, eti, thr, thi,
      bsr, bsi, ok, k, lane, flag, tr, ti, work, hr, hi, Hsr, Hsi, gsr, gsi,
@@ -407,6 +418,33 @@ def _sk_group_py(
         history[group, it, 0] = total_sk
         history[group, it, 1] = total_oe
     n_run[group] = run
+    return count
+
+
+def _sk_group_py(
+    U, Y, bins, theta0, closed_rss, start_system, jump_limit, radius,
+    weights, col_base, data_index, F, n_centre, q_basis, pair_kind, pair_a,
+    pair_b, pair_nd, pair_off, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const,
+    rhs_ptr, rhs_mom, rhs_coef, band_int, den_int, den_map,
+    system_factor, guard_radius, iterations, lm_iterations, tol, keep_best,
+    exact_tol, theta_out, cost_out, flags_out, cvar_out, history, n_run,
+    lm_history, n_run_lm, lay, lm_stop, lm_state, lm_start, pend, group, s,
+):
+    """SK for the windows ``bins[group*LANES:(group+1)*LANES]``, then LM up
+    to iteration ``lm_stop``; windows still active there are left in
+    ``pend`` for :func:`_lm_group`."""
+    (sr, si, Sar, Sai, Tr, Ti, Er, Ei, Or, Oi, mr, mi, Hr, Hi, gr, gi, xr, xi,
+     dr, di, scale2, polyr, polyi, resr, resi, Wt, er, ei, etr, eti, thr, thi,
+     bsr, bsi, ok, k, lane, flag, tr, ti, work, hr, hi, Hsr, Hsi, gsr, gsi,
+     str_, sti, ds, lm_lane, need, Gtr, Gti, rbr, rbi, ebr, ebi, rowix) = s
+    count = _sk_part(
+        U, Y, bins, theta0, closed_rss, start_system, jump_limit, radius,
+        weights, col_base, data_index, F, q_basis, pair_kind, pair_a, pair_b,
+        pair_nd, pair_off, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const,
+        rhs_ptr, rhs_mom, rhs_coef, band_int, den_int, den_map, system_factor,
+        guard_radius, iterations, tol, keep_best, exact_tol, history, n_run,
+        group, s,
+    )
     lm_run = 0
     if lm_iterations > 0:
         lm_run = _lm_phase(
@@ -447,9 +485,7 @@ def _finish_group_py(
     next stage (``pend``, ``lm_state``, ``lm_start``, the estimate in
     ``theta_out``, the guard flag in ``flags_out``), and the results of the
     others: estimate, cost, flags and the Lemma 2 covariance."""
-    P = sr.shape[1]
-    L, p = weights.shape
-    den = F + P
+    p = weights.shape[1]
     n_done = count
     if lm_iterations > 0:
         total = 0.0  # every window: the sums of the iterations not run
@@ -477,6 +513,34 @@ def _finish_group_py(
             lm_history[group, it] = done
     if n_done == 0:
         return
+    lm = lm_iterations > 0
+    skip_active = lm and stop < lm_iterations
+    _write_results(
+        sr, si, hr, hi, Sar, Sai, Tr, Ti, Er, Ei, Or, Oi, mr, mi, Hr, Hi, gr,
+        gi, scale2, polyr, polyi, resr, resi, Wt, er, ei, bsr, bsi, ok, lane,
+        flag, tr, ti, rowix, count, weights, col_base, data_index, F, n_centre,
+        q_basis, pair_kind, pair_a, pair_b, pair_nd, pair_off, ent_ptr, ent_mom,
+        ent_coef, ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef,
+        lm, skip_active,
+        theta_out, cost_out, flags_out, cvar_out,
+    )
+
+
+def _write_results_py(
+    sr, si, hr, hi, Sar, Sai, Tr, Ti, Er, Ei, Or, Oi, mr, mi, Hr, Hi, gr, gi,
+    scale2, polyr, polyi, resr, resi, Wt, er, ei, bsr, bsi, ok, lane, flag, tr,
+    ti, rowix, count, weights, col_base, data_index, F, n_centre, q_basis,
+    pair_kind, pair_a, pair_b, pair_nd, pair_off, ent_ptr, ent_mom, ent_coef,
+    ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef, lm, skip_active,
+    theta_out, cost_out, flags_out, cvar_out,
+):
+    """Results of the lanes ``0..count-1`` (``skip_active``: not of those
+    still active): the estimate ``bsr/bsi``, its cost ``lane[1]``, the flags
+    ``flag[1:3]`` and the Lemma 2 covariance at the estimate (``lm``: of
+    ``J^H J``; ``hr/hi[:F]`` hold the window's inputs)."""
+    P = sr.shape[1]
+    L, p = weights.shape
+    den = F + P
     # Lemma 2 on the problem reweighted by the final estimate (LM: J^H J, the
     # denominator columns built from yhat)
     _compiled._residual(sr, si, bsr, bsi, weights, col_base, data_index, F,
@@ -485,7 +549,7 @@ def _finish_group_py(
     for r in range(L):
         for w in range(LANES):
             Wt[r, w] = 1.0 / (er[r, w] ** 2 + ei[r, w] ** 2)
-    if lm_iterations > 0:
+    if lm:
         _hat_series(sr, si, resr, resi, er, ei, F, hr, hi, pair_kind, pair_a,
                     pair_b, Sar, Sai)
     _weighted_gram(
@@ -496,7 +560,7 @@ def _finish_group_py(
     _compiled._cholesky(Hr, Hi, scale2, ok, 0.0, p)
     _compiled._tail_inverse(Hr, Hi, n_centre, p, tr, ti)
     for w in range(count):
-        if lm_iterations > 0 and flag[0, w] and stop < lm_iterations:
+        if skip_active and flag[0, w]:
             continue
         row = rowix[w]
         for i in range(p):
@@ -880,6 +944,306 @@ def _lm_phase_py(
     return run
 
 
+def _load_lane_py(src, v, s, w, F):
+    """Window of lane ``v`` of the SK group ``src`` into lane ``w`` of the LM
+    group ``s``, starting LM (the state :func:`_lm_phase` sets when
+    ``fresh``): data, pair series, estimate with its residual and
+    denominator, cost, damping and flags; its model is to be built."""
+    (sr, si, Sar, Sai, _, _, _, _, _, _, _, _, _, _, _, _, _, _, _, _, _, _, _,
+     _, _, _, _, _, _, _, _, _, bsr, bsi, _, k, lane, flag, _, _, _, _, _, _, _,
+     _, _, _, _, _, _, _, _, _, rbr, rbi, ebr, ebi, rowix) = src
+    (tsr, tsi, tSar, tSai, _, _, _, _, _, _, _, _, _, _, _, _, _, _, _, _, _, _,
+     _, _, _, _, _, _, _, _, _, _, tbsr, tbsi, _, tk, tlane, tflag, _, _, _, thr,
+     thi, _, _, _, _, tstr, tsti, _, tlm, tneed, _, _, trbr, trbi, tebr, tebi,
+     trowix) = s
+    for a in range(sr.shape[0]):
+        for q in range(sr.shape[1]):
+            for r in range(sr.shape[2]):
+                tsr[a, q, r, w] = sr[a, q, r, v]
+                tsi[a, q, r, w] = si[a, q, r, v]
+                if a < F:  # the input bases of Ahat are the window's own
+                    thr[a, q, r, w] = sr[a, q, r, v]
+                    thi[a, q, r, w] = si[a, q, r, v]
+    for t in range(Sar.shape[0]):
+        for r in range(Sar.shape[1]):
+            tSar[t, r, w] = Sar[t, r, v]
+            tSai[t, r, w] = Sai[t, r, v]
+    for q in range(rbr.shape[0]):
+        for r in range(rbr.shape[1]):
+            trbr[q, r, w] = rbr[q, r, v]
+            trbi[q, r, w] = rbi[q, r, v]
+    for r in range(ebr.shape[0]):
+        tebr[r, w] = ebr[r, v]
+        tebi[r, w] = ebi[r, v]
+    for i in range(bsr.shape[0]):
+        tbsr[i, w] = bsr[i, v]
+        tbsi[i, w] = bsi[i, v]
+        tstr[i, w] = bsr[i, v]
+        tsti[i, w] = bsi[i, v]
+    tlane[1, w] = lane[1, v]
+    tlm[0, w] = 1e-3
+    tlm[1, w] = lane[1, v]
+    tflag[0, w] = True
+    tflag[1, w] = False
+    tflag[2, w] = flag[2, v]
+    tflag[3, w] = False
+    tneed[0, w] = True
+    tneed[1, w] = False
+    tk[w] = k[v]
+    trowix[w] = rowix[v]
+
+
+def _push_result_py(fin, n_fin, row, kbin, bsr, bsi, v, cost, converged, guarded):
+    """Queue a finished window (row ``row``, bin ``kbin``; estimate lane
+    ``v`` of ``bsr/bsi``, its cost and flags) in lane ``n_fin`` of the result
+    group ``fin``; returns the number queued."""
+    fbsr, fbsi, fk, flane, fflag, frowix = (
+        fin[32], fin[33], fin[35], fin[36], fin[37], fin[58]
+    )
+    for i in range(bsr.shape[0]):
+        fbsr[i, n_fin] = bsr[i, v]
+        fbsi[i, n_fin] = bsi[i, v]
+    fk[n_fin] = kbin
+    frowix[n_fin] = row
+    flane[1, n_fin] = cost
+    fflag[0, n_fin] = False
+    fflag[1, n_fin] = converged
+    fflag[2, n_fin] = guarded
+    return n_fin + 1
+
+
+def _flush_results_py(
+    U, Y, fin, count, weights, col_base, data_index, F, n_centre, q_basis,
+    pair_kind, pair_a, pair_b, pair_nd, pair_off, ent_ptr, ent_mom, ent_coef,
+    ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef, theta_out, cost_out,
+    flags_out, cvar_out,
+):
+    """Results of the ``count`` windows queued in ``fin`` (their data
+    gathered again): :func:`_write_results` after LM."""
+    (sr, si, Sar, Sai, Tr, Ti, Er, Ei, Or, Oi, mr, mi, Hr, Hi, gr, gi, xr, xi,
+     dr, di, scale2, polyr, polyi, resr, resi, Wt, er, ei, etr, eti, thr, thi,
+     bsr, bsi, ok, k, lane, flag, tr, ti, work, hr, hi, Hsr, Hsi, gsr, gsi,
+     str_, sti, ds, lm_lane, need, Gtr, Gti, rbr, rbi, ebr, ebi, rowix) = fin
+    n = weights.shape[0] // 2
+    for w in range(count, LANES):  # pad with the last window
+        k[w] = k[count - 1]
+        for i in range(bsr.shape[0]):
+            bsr[i, w] = bsr[i, count - 1]
+            bsi[i, w] = bsi[i, count - 1]
+    _compiled._gather(U, Y, k, F, n, sr, si)
+    for t in range(pair_kind.shape[0]):
+        _compiled._pair_series(
+            sr, si, pair_kind[t], pair_a[t], pair_b[t], Sar[t], Sai[t]
+        )
+    for f in range(F):
+        for q in range(sr.shape[1]):
+            for r in range(sr.shape[2]):
+                for w in range(LANES):
+                    hr[f, q, r, w] = sr[f, q, r, w]
+                    hi[f, q, r, w] = si[f, q, r, w]
+    _write_results(
+        sr, si, hr, hi, Sar, Sai, Tr, Ti, Er, Ei, Or, Oi, mr, mi, Hr, Hi, gr,
+        gi, scale2, polyr, polyi, resr, resi, Wt, er, ei, bsr, bsi, ok, lane,
+        flag, tr, ti, rowix, count, weights, col_base, data_index, F, n_centre,
+        q_basis, pair_kind, pair_a, pair_b, pair_nd, pair_off, ent_ptr, ent_mom,
+        ent_coef, ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef, True, False,
+        theta_out, cost_out, flags_out, cvar_out,
+    )
+
+
+def _lm_refill_range_py(
+    U, Y, bins, theta0, closed_rss, start_system, jump_limit, radius,
+    weights, col_base, data_index, F, n_centre, q_basis, pair_kind, pair_a,
+    pair_b, pair_nd, pair_off, ent_ptr, ent_mom, ent_coef, ent_conj, ent_const,
+    rhs_ptr, rhs_mom, rhs_coef, n_moments, band_int, den_int, den_map,
+    system_factor, guard_radius, iterations, lm_iterations, tol, keep_best,
+    exact_tol, theta_out, cost_out, flags_out, cvar_out, history, n_run,
+    lm_history, n_run_lm, lay, task, first_group, stop_group, stride,
+):
+    """SK on the lane groups ``range(first_group, stop_group, stride)`` and
+    guarded LM of their windows with continuous lane refill (task ``task``).
+
+    The SK groups run one at a time (:func:`_sk_part`, as :func:`_sk_group`);
+    their windows enter the LM group lane by lane (:func:`_load_lane`): a
+    lane whose window stops takes the next window at once, so the LM group
+    runs full until the task's windows are exhausted. Every lane keeps its own
+    iteration count; the iteration body is :func:`_lm_phase`'s. Finished
+    windows (and exact fits, which skip LM) are queued and their results
+    written a full group at a time (:func:`_flush_results`). The iterates of
+    a window depend neither on its lane nor on its neighbours, so the results
+    are bit for bit those of :func:`_sk_group`. ``lm_history[task, it]``: the
+    sum of the windows' LM costs after iteration ``it`` (the final cost after
+    a window's last); ``n_run_lm[task]``: the most iterations a window ran."""
+    P = U.shape[0]
+    L, p = weights.shape
+    den = F + P
+    n_pairs = pair_kind.shape[0]
+    n_den = den_int.shape[0]
+    src = _sk_scratch(F, P, L, p, n_moments, n_centre, n_pairs, n_den)
+    fin = _sk_scratch(F, P, L, p, n_moments, n_centre, n_pairs, n_den)
+    s = _sk_scratch(F, P, L, p, n_moments, n_centre, n_pairs, n_den)
+    (sr, si, Sar, Sai, Tr, Ti, Er, Ei, Or, Oi, mr, mi, Hr, Hi, gr, gi, xr, xi,
+     dr, di, scale2, polyr, polyi, resr, resi, Wt, er, ei, etr, eti, thr, thi,
+     bsr, bsi, ok, k, lane, flag, tr, ti, work, hr, hi, Hsr, Hsi, gsr, gsi,
+     str_, sti, ds, lm_lane, need, Gtr, Gti, rbr, rbi, ebr, ebi, rowix) = s
+    s_ptr, s_col, s_val = lay[10], lay[11], lay[12]
+    src_bsr, src_bsi, src_k, src_lane, src_flag, src_rowix = (
+        src[32], src[33], src[35], src[36], src[37], src[58]
+    )
+    hist = lm_history[task]
+    lane_it = np.zeros(LANES, np.int64)
+    held = np.zeros(LANES, np.bool_)  # the lane holds a window
+    for w in range(LANES):
+        flag[0, w] = False
+        need[0, w] = False
+    group = first_group
+    src_count = 0
+    src_next = 0
+    n_fin = 0
+    most = 0
+    filled = False  # every lane has held a window (valid data)
+    while True:
+        for w in range(LANES):
+            if flag[0, w]:
+                continue
+            if held[w]:  # its window stopped after lane_it[w] iterations
+                held[w] = False
+                need[0, w] = False
+                for it in range(lane_it[w], lm_iterations):
+                    hist[it] += lane[1, w]
+                most = max(most, lane_it[w])
+                n_fin = _push_result(fin, n_fin, rowix[w], k[w], bsr, bsi, w,
+                                     lane[1, w], flag[1, w], flag[2, w])
+                if n_fin == LANES:
+                    _flush_results(
+                        U, Y, fin, n_fin, weights, col_base, data_index, F,
+                        n_centre, q_basis, pair_kind, pair_a, pair_b, pair_nd,
+                        pair_off, ent_ptr, ent_mom, ent_coef, ent_conj,
+                        ent_const, rhs_ptr, rhs_mom, rhs_coef, theta_out,
+                        cost_out, flags_out, cvar_out,
+                    )
+                    n_fin = 0
+            while not held[w]:  # the next window of the task that needs LM
+                if src_next == src_count:
+                    if group >= stop_group:
+                        break
+                    src_count = _sk_part(
+                        U, Y, bins, theta0, closed_rss, start_system,
+                        jump_limit, radius, weights, col_base, data_index, F,
+                        q_basis, pair_kind, pair_a, pair_b, pair_nd, pair_off,
+                        ent_ptr, ent_mom, ent_coef, ent_conj, ent_const,
+                        rhs_ptr, rhs_mom, rhs_coef, band_int, den_int,
+                        den_map, system_factor, guard_radius, iterations, tol,
+                        keep_best, exact_tol, history, n_run, group, src,
+                    )
+                    _compiled._residual(
+                        src[0], src[1], src_bsr, src_bsi, weights, col_base,
+                        data_index, F, src[21], src[22], src[54], src[55],
+                    )
+                    _denominator(src[21], src[22], den, src[56], src[57])
+                    group += stride
+                    src_next = 0
+                v = src_next
+                src_next += 1
+                if src_flag[3, v]:  # an exact fit: no LM
+                    for it in range(lm_iterations):
+                        hist[it] += src_lane[1, v]
+                    n_fin = _push_result(
+                        fin, n_fin, src_rowix[v], src_k[v], src_bsr, src_bsi,
+                        v, src_lane[1, v], True, src_flag[2, v],
+                    )
+                    if n_fin == LANES:
+                        _flush_results(
+                            U, Y, fin, n_fin, weights, col_base, data_index, F,
+                            n_centre, q_basis, pair_kind, pair_a, pair_b,
+                            pair_nd, pair_off, ent_ptr, ent_mom, ent_coef,
+                            ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef,
+                            theta_out, cost_out, flags_out, cvar_out,
+                        )
+                        n_fin = 0
+                    continue
+                _load_lane(src, v, s, w, F)
+                lane_it[w] = 0
+                held[w] = True
+        if not filled:  # lanes that never held a window copy one that does
+            filled = True
+            for w in range(1, LANES):
+                if not held[w] and held[0]:
+                    _load_lane(s, 0, s, w, F)
+                    flag[0, w] = False
+                    need[0, w] = False
+        busy = False
+        rebuild = False
+        for w in range(LANES):
+            busy = busy or flag[0, w]
+            rebuild = rebuild or need[0, w]
+        if not busy:
+            break
+        if rebuild:  # lanes without a new estimate get the model they had
+            _lm_model(
+                sr, si, hr, hi, rbr, rbi, ebr, ebi, Sar, Sai, Tr, Ti, Er, Ei,
+                Or, Oi, mr, mi, Gtr, Gti, gr, gi, polyr, polyi, resr, resi, Wt,
+                F, data_index, q_basis, pair_kind, pair_a, pair_b, pair_nd,
+                pair_off, lay, ds, Hsr, Hsi, gsr, gsi,
+            )
+        _lm_step(Hsr, Hsi, gsr, gsi, ds, lm_lane[0], bsr, bsi, s_ptr, s_col,
+                 s_val, Hr, Hi, gr, gi, scale2, ok, xr, xi)
+        _compiled._residual(sr, si, xr, xi, weights, col_base, data_index, F,
+                            polyr, polyi, resr, resi)
+        _denominator(polyr, polyi, den, etr, eti)
+        _oe_cost(resr, resi, etr, eti, lm_lane[2])
+        for w in range(LANES):
+            need[1, w] = False
+            if not flag[0, w]:
+                continue
+            need[0, w] = False
+            row = rowix[w]
+            cost = lm_lane[2, w]
+            decrease = ok[w] and np.isfinite(cost) and cost < lane[1, w]
+            hit = decrease and _rejected(
+                xr, xi, w, row, band_int, system_factor, start_system,
+                jump_limit, den_int, den_map, guard_radius, radius, work,
+            )
+            if hit:  # back to the estimate LM started from, stop
+                flag[2, w] = True
+                flag[0, w] = False
+                lane[1, w] = lm_lane[1, w]
+                for i in range(p):
+                    bsr[i, w] = str_[i, w]
+                    bsi[i, w] = sti[i, w]
+            if decrease and not hit:
+                change = (lane[1, w] - cost) / lane[1, w]
+                lane[1, w] = cost
+                need[1, w] = True
+                for i in range(p):
+                    bsr[i, w] = xr[i, w]
+                    bsi[i, w] = xi[i, w]
+                lm_lane[0, w] = max(lm_lane[0, w] / 10.0, 1e-12)
+                if change < tol:
+                    flag[0, w] = False
+                    flag[1, w] = True
+                else:
+                    need[0, w] = True
+            else:
+                lm_lane[0, w] *= 10.0
+                if lm_lane[0, w] > 1e12:
+                    flag[0, w] = False
+                    flag[1, w] = True
+            hist[lane_it[w]] += lane[1, w]
+            lane_it[w] += 1
+            if lane_it[w] == lm_iterations:
+                flag[0, w] = False
+        _keep_accepted(need[1], resr, resi, etr, eti, rbr, rbi, ebr, ebi)
+    if n_fin > 0:
+        _flush_results(
+            U, Y, fin, n_fin, weights, col_base, data_index, F, n_centre,
+            q_basis, pair_kind, pair_a, pair_b, pair_nd, pair_off, ent_ptr,
+            ent_mom, ent_coef, ent_conj, ent_const, rhs_ptr, rhs_mom, rhs_coef,
+            theta_out, cost_out, flags_out, cvar_out,
+        )
+    n_run_lm[task] = most
+
+
 if AVAILABLE:  # pragma: no branch
     from numba import njit
 
@@ -895,11 +1259,17 @@ if AVAILABLE:  # pragma: no branch
     _oe_cost = njit(**_opts)(_oe_cost_py)
     _keep_accepted = njit(**_opts)(_keep_accepted_py)
     _lm_phase = njit(**_opts)(_lm_phase_py)
+    _write_results = njit(**_opts)(_write_results_py)
     _finish_group = njit(**_opts)(_finish_group_py)
+    _sk_part = njit(**_opts)(_sk_part_py)
     _sk_group = njit(**_opts)(_sk_group_py)
     _sk_range = njit(**_opts)(_sk_range_py)
     _lm_group = njit(**_opts)(_lm_group_py)
     _lm_range = njit(**_opts)(_lm_range_py)
+    _load_lane = njit(**_opts)(_load_lane_py)
+    _push_result = njit(**_opts)(_push_result_py)
+    _flush_results = njit(**_opts)(_flush_results_py)
+    _lm_refill_range = njit(**_opts)(_lm_refill_range_py)
 else:  # pragma: no cover
     _root_in_unit_disk = _root_in_unit_disk_py
 
@@ -935,6 +1305,7 @@ def sk_windows(
     layout_tables: dict | None = None,
     n_threads: int | None = None,
     lm_stages: tuple | None = None,
+    lm_refill: bool | None = None,
 ):
     """Sanathanan-Koerner iterations of every window (compiled, threaded).
 
@@ -983,8 +1354,13 @@ def sk_windows(
     n_threads : int, optional
     lm_stages : tuple of int, optional
         LM iterations after which the windows still active are packed into
-        new lane groups (default ``_LM_STAGES``; ``()``: never). The results
-        do not depend on it.
+        new lane groups (default ``_LM_STAGES``; ``()``: never), when LM
+        does not refill lanes. The results do not depend on it.
+    lm_refill : bool, optional
+        LM refills a lane as soon as its window stops (:func:`_lm_refill_range`)
+        instead of packing at ``lm_stages`` (default ``_LM_REFILL``). The
+        results do not depend on it (the sums of the LM costs to round-off:
+        they are summed in another order).
 
     Returns
     -------
@@ -1049,6 +1425,8 @@ def sk_windows(
         np.eye(p) if from_layout is None else from_layout,
     )
     n_threads = n_threads or _compiled.numba.config.NUMBA_NUM_THREADS
+    if lm_iterations > 0 and (_LM_REFILL if lm_refill is None else lm_refill):
+        return _refill_windows(args, lay, n_groups, n_threads, lm_iterations)
     _run_groups(
         lambda first, stop: _sk_range(
             *args, lay, stages[0], lm_state, lm_start, pend, first, stop
@@ -1085,6 +1463,31 @@ def sk_windows(
     )
 
 
+def _refill_windows(args, lay, n_groups: int, n_threads: int, lm_iterations: int):
+    """:func:`sk_windows` with LM lane refill (:func:`_lm_refill_range`): one
+    task per thread, task ``t`` of ``T`` taking the lane groups ``t, t + T,
+    ...`` (interleaved, so that the tasks get windows from every part of the
+    band and about equal work; a task's LM group drains once, when its
+    windows are exhausted)."""
+    theta_out, cost, flags, cvar, history, n_run = args[-8:-2]
+    n_tasks = max(1, min(n_threads * _REFILL_TASKS_PER_THREAD, n_groups))
+    lm_history = np.zeros((n_tasks, lm_iterations))
+    n_run_lm = np.zeros(n_tasks, dtype=np.int64)
+    _run_tasks(
+        lambda task: _lm_refill_range(
+            *args[:-2], lm_history, n_run_lm, lay, task, task, n_groups, n_tasks,
+        ),
+        [(task,) for task in range(n_tasks)], n_threads,
+    )
+    sums = history[:, : int(n_run.max(initial=0)) + 1].sum(axis=0)
+    lm_sums = lm_history.sum(axis=0)[: int(n_run_lm.max(initial=0))]
+    return (
+        theta_out.view(np.complex128)[..., 0], cost, flags[:, 0].copy(),
+        flags[:, 1].copy(), cvar.view(np.complex128)[..., 0], sums[:, 0],
+        sums[:, 1], lm_sums,
+    )
+
+
 def _run_groups(run, n_groups: int, n_threads: int) -> None:
     """``run(first, stop)`` over the lane groups in tasks of
     ``_GROUPS_PER_TASK``, on up to ``n_threads`` threads."""
@@ -1092,9 +1495,18 @@ def _run_groups(run, n_groups: int, n_threads: int) -> None:
         (start, min(n_groups, start + _GROUPS_PER_TASK))
         for start in range(0, n_groups, _GROUPS_PER_TASK)
     ]
-    threads = min(n_threads, max(len(tasks), 1))
-    if threads <= 1:
+    if n_threads <= 1 or len(tasks) <= 1:
         run(0, n_groups)
+    else:
+        _run_tasks(run, tasks, n_threads)
+
+
+def _run_tasks(run, tasks: list, n_threads: int) -> None:
+    """``run(task)`` for every task, on up to ``n_threads`` threads."""
+    threads = min(n_threads, len(tasks))
+    if threads <= 1:
+        for task in tasks:
+            run(*task)
     else:
         with ThreadPoolExecutor(threads) as pool:
             list(pool.map(lambda task: run(*task), tasks))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import warnings
 
 import numpy as np
@@ -306,18 +307,20 @@ def test_layout_tables_give_the_changed_basis_gram():
 
 def test_lm_repacking_leaves_every_window_unchanged(monkeypatch):
     """Windows still active after some LM iterations are packed densely into
-    new lane groups (``_LM_STAGES``): a window's LM iterates do not depend on
-    the lane it sits in nor on its neighbours, and its model is a function of
-    its estimate alone, so the results with packing after iterations 1, 2, 3,
-    7 and 20 equal, bit for bit, those of lane groups that run all 50
-    iterations. Each stage has windows to pack (checked on the number of
-    windows still active after each)."""
+    new lane groups (``_LM_STAGES``, when LM does not refill lanes): a
+    window's LM iterates do not depend on the lane it sits in nor on its
+    neighbours, and its model is a function of its estimate alone, so the
+    results with packing after iterations 1, 2, 3, 7 and 20 equal, bit for
+    bit, those of lane groups that run all 50 iterations. Each stage has
+    windows to pack (checked on the number of windows still active after
+    each)."""
     from lrmfrf import _compiled_refine
     from lrmfrf.plants import wafer_stage
 
     U, Y = _stage_records(wafer_stage().G_y4, 3, 1500 * 3, seed=5)
     layout = LocalModelLayout(F=3, **PAPER)
     closed = fit_local_models(U, Y, layout)
+    monkeypatch.setattr(_compiled_refine, "_LM_REFILL", False)
     resumed = []
     lm_range = _compiled_refine._lm_range
 
@@ -344,4 +347,59 @@ def test_lm_repacking_leaves_every_window_unchanged(monkeypatch):
         )
     np.testing.assert_array_equal(new.converged, ref.converged)
     np.testing.assert_array_equal(new.guarded, ref.guarded)
+    np.testing.assert_allclose(new.cost_history, ref.cost_history, rtol=1e-13)
+
+
+@pytest.mark.parametrize("sk_iterations, lm_iterations", [(0, 50), (3, 20)])
+def test_lm_lane_refill_leaves_every_window_unchanged(
+    monkeypatch, sk_iterations, lm_iterations
+):
+    """LM with lane refill (``_LM_REFILL``: a lane takes the next window as
+    soon as its window stops, every lane at its own iteration) against lane
+    groups that run every iteration without packing: the windows' iterates
+    do not depend on their lane, neighbours or start time, so every result
+    is equal bit for bit; the per-iteration cost sums are summed in another
+    order (1e-13). Three tasks of about four interleaved lane groups each,
+    so windows enter lanes freed mid-run and each task's group drains at its
+    end (checked: more windows than lanes per task, and some windows stop
+    before the last iteration while others run on)."""
+    from lrmfrf import _compiled_refine
+    from lrmfrf.plants import wafer_stage
+
+    U, Y = _stage_records(wafer_stage().G_y4, 3, 2200 * 3, seed=6)
+    layout = LocalModelLayout(F=3, **PAPER)
+    closed = fit_local_models(U, Y, layout)
+    tasks = []
+    refill = _compiled_refine._lm_refill_range
+
+    def spy(*args):
+        tasks.append(len(range(*args[-3:])))  # lane groups of the task
+        return refill(*args)
+
+    monkeypatch.setattr(_compiled_refine, "_lm_refill_range", spy)
+    monkeypatch.setattr(_compiled_refine, "_LM_STAGES", ())
+    monkeypatch.setattr(_compiled_refine, "sk_windows", functools.partial(
+        _compiled_refine.sk_windows, n_threads=3))
+    monkeypatch.setattr(_compiled_refine, "_REFILL_TASKS_PER_THREAD", 1)
+    results = {}
+    for on in (False, True):
+        monkeypatch.setattr(_compiled_refine, "_LM_REFILL", on)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            results[on] = refine_local_models(
+                U, Y, layout, closed, sk_iterations=sk_iterations,
+                lm_iterations=lm_iterations, backend="numba",
+            )
+    ref, new = results.values()
+    n_groups = -(-closed.slow_bins.size // _compiled_refine.LANES)
+    assert len(tasks) == 3 and sum(tasks) == n_groups and min(tasks) >= 3
+    assert new.lm_iterations == ref.lm_iterations == lm_iterations
+    assert 0.2 < np.mean(new.converged) < 0.95
+    for name in ("theta", "system", "rss", "system_var", "system_cov"):
+        np.testing.assert_array_equal(
+            getattr(new.local_fit, name), getattr(ref.local_fit, name), err_msg=name
+        )
+    np.testing.assert_array_equal(new.converged, ref.converged)
+    np.testing.assert_array_equal(new.guarded, ref.guarded)
+    np.testing.assert_array_equal(new.sk_cost_history, ref.sk_cost_history)
     np.testing.assert_allclose(new.cost_history, ref.cost_history, rtol=1e-13)
