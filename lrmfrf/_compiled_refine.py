@@ -830,6 +830,50 @@ def _keep_accepted_py(accepted, resr, resi, er, ei, rbr, rbi, ebr, ebi):
                 ebi[r, w] = ei[r, w]
 
 
+def _lm_decide_py(
+    w, row, p, tol, ok, xr, xi, bsr, bsi, str_, sti, lane, lm_lane, flag, need,
+    band_int, system_factor, start_system, jump_limit, den_int, den_map,
+    guard_radius, radius, work,
+):
+    """Accept or reject lane ``w``'s LM step (shared by :func:`_lm_phase_py`
+    and :func:`_lm_refill_range_py`): a decrease of the cost that the guard
+    does not reject becomes the lane's estimate (``bs``) with the damping
+    divided by 10, and stops the lane when the relative change is below
+    ``tol``; a guard hit restores the estimate LM started from (``st``) and
+    stops; otherwise the damping grows 10x (the lane stops above 1e12)."""
+    cost = lm_lane[2, w]
+    decrease = ok[w] and np.isfinite(cost) and cost < lane[1, w]
+    hit = decrease and _rejected(
+        xr, xi, w, row, band_int, system_factor, start_system,
+        jump_limit, den_int, den_map, guard_radius, radius, work,
+    )
+    if hit:  # back to the estimate LM started from, stop
+        flag[2, w] = True
+        flag[0, w] = False
+        lane[1, w] = lm_lane[1, w]
+        for i in range(p):
+            bsr[i, w] = str_[i, w]
+            bsi[i, w] = sti[i, w]
+    if decrease and not hit:
+        change = (lane[1, w] - cost) / lane[1, w]
+        lane[1, w] = cost
+        need[1, w] = True
+        for i in range(p):
+            bsr[i, w] = xr[i, w]
+            bsi[i, w] = xi[i, w]
+        lm_lane[0, w] = max(lm_lane[0, w] / 10.0, 1e-12)
+        if change < tol:
+            flag[0, w] = False
+            flag[1, w] = True
+        else:
+            need[0, w] = True
+    else:
+        lm_lane[0, w] *= 10.0
+        if lm_lane[0, w] > 1e12:
+            flag[0, w] = False
+            flag[1, w] = True
+
+
 def _lm_phase_py(
     sr, si, hr, hi, Sar, Sai, Tr, Ti, Er, Ei, Or, Oi, mr, mi, Hr, Hi,
     gr, gi, xr, xi, scale2, polyr, polyi, resr, resi, Wt, etr, eti,
@@ -907,37 +951,11 @@ def _lm_phase_py(
             need[0, w] = False
             row = rowix[w]
             if flag[0, w]:
-                cost = lm_lane[2, w]
-                decrease = ok[w] and np.isfinite(cost) and cost < lane[1, w]
-                hit = decrease and _rejected(
-                    xr, xi, w, row, band_int, system_factor, start_system,
-                    jump_limit, den_int, den_map, guard_radius, radius, work,
+                _lm_decide(
+                    w, row, p, tol, ok, xr, xi, bsr, bsi, str_, sti, lane, lm_lane,
+                    flag, need, band_int, system_factor, start_system, jump_limit,
+                    den_int, den_map, guard_radius, radius, work,
                 )
-                if hit:  # back to the estimate LM started from, stop
-                    flag[2, w] = True
-                    flag[0, w] = False
-                    lane[1, w] = lm_lane[1, w]
-                    for i in range(p):
-                        bsr[i, w] = str_[i, w]
-                        bsi[i, w] = sti[i, w]
-                if decrease and not hit:
-                    change = (lane[1, w] - cost) / lane[1, w]
-                    lane[1, w] = cost
-                    need[1, w] = True
-                    for i in range(p):
-                        bsr[i, w] = xr[i, w]
-                        bsi[i, w] = xi[i, w]
-                    lm_lane[0, w] = max(lm_lane[0, w] / 10.0, 1e-12)
-                    if change < tol:
-                        flag[0, w] = False
-                        flag[1, w] = True
-                    else:
-                        need[0, w] = True
-                else:
-                    lm_lane[0, w] *= 10.0
-                    if lm_lane[0, w] > 1e12:
-                        flag[0, w] = False
-                        flag[1, w] = True
             total += lane[1, w]
         _keep_accepted(need[1], resr, resi, etr, eti, rbr, rbi, ebr, ebi)
         lm_history[group, it] = total
@@ -1198,37 +1216,11 @@ def _lm_refill_range_py(
                 continue
             need[0, w] = False
             row = rowix[w]
-            cost = lm_lane[2, w]
-            decrease = ok[w] and np.isfinite(cost) and cost < lane[1, w]
-            hit = decrease and _rejected(
-                xr, xi, w, row, band_int, system_factor, start_system,
-                jump_limit, den_int, den_map, guard_radius, radius, work,
+            _lm_decide(
+                w, row, p, tol, ok, xr, xi, bsr, bsi, str_, sti, lane, lm_lane,
+                flag, need, band_int, system_factor, start_system, jump_limit,
+                den_int, den_map, guard_radius, radius, work,
             )
-            if hit:  # back to the estimate LM started from, stop
-                flag[2, w] = True
-                flag[0, w] = False
-                lane[1, w] = lm_lane[1, w]
-                for i in range(p):
-                    bsr[i, w] = str_[i, w]
-                    bsi[i, w] = sti[i, w]
-            if decrease and not hit:
-                change = (lane[1, w] - cost) / lane[1, w]
-                lane[1, w] = cost
-                need[1, w] = True
-                for i in range(p):
-                    bsr[i, w] = xr[i, w]
-                    bsi[i, w] = xi[i, w]
-                lm_lane[0, w] = max(lm_lane[0, w] / 10.0, 1e-12)
-                if change < tol:
-                    flag[0, w] = False
-                    flag[1, w] = True
-                else:
-                    need[0, w] = True
-            else:
-                lm_lane[0, w] *= 10.0
-                if lm_lane[0, w] > 1e12:
-                    flag[0, w] = False
-                    flag[1, w] = True
             hist[lane_it[w]] += lane[1, w]
             lane_it[w] += 1
             if lane_it[w] == lm_iterations:
@@ -1258,6 +1250,7 @@ if AVAILABLE:  # pragma: no branch
     _lm_step = njit(**_opts)(_lm_step_py)
     _oe_cost = njit(**_opts)(_oe_cost_py)
     _keep_accepted = njit(**_opts)(_keep_accepted_py)
+    _lm_decide = njit(**_opts)(_lm_decide_py)
     _lm_phase = njit(**_opts)(_lm_phase_py)
     _write_results = njit(**_opts)(_write_results_py)
     _finish_group = njit(**_opts)(_finish_group_py)
