@@ -403,3 +403,77 @@ def test_lm_lane_refill_leaves_every_window_unchanged(
     np.testing.assert_array_equal(new.guarded, ref.guarded)
     np.testing.assert_array_equal(new.sk_cost_history, ref.sk_cost_history)
     np.testing.assert_allclose(new.cost_history, ref.cost_history, rtol=1e-13)
+
+
+def _refill_and_groups(monkeypatch, U, Y, layout, n_threads=2, **params):
+    """``refine_local_models`` through the compiled LM with lane refill and
+    with lane groups that run every iteration (no packing)."""
+    from lrmfrf import _compiled_refine
+
+    closed = fit_local_models(U, Y, layout)
+    monkeypatch.setattr(_compiled_refine, "_LM_STAGES", ())
+    monkeypatch.setattr(_compiled_refine, "sk_windows", functools.partial(
+        _compiled_refine.sk_windows, n_threads=n_threads))
+    results = []
+    for on in (True, False):
+        monkeypatch.setattr(_compiled_refine, "_LM_REFILL", on)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            results.append(refine_local_models(U, Y, layout, closed,
+                                               backend="numba", **params))
+    return results
+
+
+def _assert_bitwise_equal(new, ref):
+    for name in ("theta", "system", "rss", "system_var", "system_cov"):
+        np.testing.assert_array_equal(
+            getattr(new.local_fit, name), getattr(ref.local_fit, name), err_msg=name
+        )
+    np.testing.assert_array_equal(new.converged, ref.converged)
+    np.testing.assert_array_equal(new.guarded, ref.guarded)
+    np.testing.assert_allclose(new.cost_history, ref.cost_history, rtol=1e-13)
+
+
+def test_lm_lane_refill_passes_exact_fits_through(monkeypatch):
+    """Exact in-class windows skip LM in the refill driver (queued for the
+    results directly, between windows that do run LM): they keep the closed
+    form's FRF (1e-8) and count as converged, and every result equals, bit
+    for bit, that of lane groups without refill (two tasks)."""
+    from lrmfrf.testing import in_class_data
+
+    layout = LocalModelLayout(F=3, **PAPER)
+    u, y, centres, G = in_class_data(layout, 600, rng=2)
+    new, ref = _refill_and_groups(monkeypatch, dft(u), dft(y), layout,
+                                  sk_iterations=2, lm_iterations=10)
+    rows = np.searchsorted(new.local_fit.slow_bins, centres)
+    assert rows.size >= 6 and not new.converged.all()  # LM ran elsewhere
+    np.testing.assert_allclose(new.local_fit.system[rows], G, rtol=1e-8,
+                               atol=1e-10)
+    assert new.converged[rows].all()
+    _assert_bitwise_equal(new, ref)
+
+
+def test_lm_lane_refill_keeps_the_sk_guard_flag(monkeypatch):
+    """A window the guard stopped during SK enters LM (as in numpy, LM runs
+    from its last good estimate) and stays flagged ``guarded`` with refill
+    too; P = 2 and a tight guard (jump = 0.5 sd) so that SK hits it."""
+    from lrmfrf.plants import wafer_stage
+    from lrmfrf.simulate import simulate
+
+    F, N = 3, 3600
+    rng = np.random.default_rng(8)
+    system = wafer_stage().G_y4
+    u = np.stack([multisine(N, rng=rng) for _ in range(2)])
+    y = np.stack([simulate(system, u[p], F, snr_db=40, rng=rng).y_l
+                  for p in range(2)])
+    U, Y = dft(u), dft(y)
+    layout = LocalModelLayout(F=F, n_experiments=2, **PAPER)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        sk = refine_local_models(U, Y, layout, fit_local_models(U, Y, layout),
+                                 sk_iterations=2, jump=0.5, backend="numba")
+    assert sk.n_guarded > 10
+    new, ref = _refill_and_groups(monkeypatch, U, Y, layout, sk_iterations=2,
+                                  lm_iterations=10, jump=0.5)
+    assert new.guarded[sk.guarded].all()
+    _assert_bitwise_equal(new, ref)
