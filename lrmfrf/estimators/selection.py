@@ -372,7 +372,8 @@ def _pmse_ingredients(U, Y, layout, *, chunk_size=None):
     ``system_var`` is Lemma 2's; the mask is that of :func:`_local_criteria`
     (well posed, finite residual, every band excited). The QR solve with
     leverages gave the same band values to about 1e-10 and variances to
-    about 1e-8 (relative) in 2.2x the CPU time.
+    about 1e-8 (relative) in 1.9x the CPU time
+    (``benchmarks/selection_rules.py --speed``).
 
     Returns arrays of shape ``(n_rows, M//2+1, n_u F)`` (band values and
     variances) and ``(n_rows, M//2+1)`` (mask), one row per output channel.
