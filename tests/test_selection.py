@@ -201,6 +201,27 @@ def test_pmse_ingredients_equal_the_qr_solve(n_outputs):
         assert np.isnan(system[o][~ok_qr]).all()
 
 
+def test_pmse_ingredients_mark_unexcited_windows_invalid():
+    """Windows with a band the input hardly excites (its DFT scaled by 1e-9
+    within N/10 of N/2: band 1 of the upper windows) have no PMSE value:
+    mask False, band values and variances NaN, the same mask as the QR
+    solve's."""
+    from lrmfrf.estimators.selection import _local_criteria, _pmse_ingredients
+
+    rng = np.random.default_rng(23)
+    u, y = _data(rng)
+    U, Y = _dfts(u, y)
+    U[:, N // 2 - N // 10 : N // 2 + N // 10 + 1] *= 1e-9
+    layout = LocalModelLayout(F=F, half_window=12, num_degree=2,
+                              transient_degree=2, den_degree=2)
+    system, var, ok = _pmse_ingredients(U, Y, layout)
+    _, ok_qr, _, _ = _local_criteria(U, Y, layout, variance=True)
+    np.testing.assert_array_equal(ok[0], ok_qr)
+    assert 0.2 < np.mean(ok[0]) < 0.8  # both kinds of window present
+    assert np.isnan(system[0][~ok[0]]).all() and np.isnan(var[0][~ok[0]]).all()
+    assert np.isfinite(system[0][ok[0]]).all() and np.isfinite(var[0][ok[0]]).all()
+
+
 def test_pmse_has_no_value_for_one_layout():
     rng = np.random.default_rng(12)
     layout = LocalModelLayout(F=F, half_window=8, num_degree=1,

@@ -381,12 +381,11 @@ def _pmse_ingredients(U, Y, layout, *, chunk_size=None):
     Y = np.asarray(Y)
     rows = [Y] if Y.ndim == 2 else [Y[:, o] for o in range(Y.shape[1])]
     slow_bins = half_slow_bins(rows[0].shape[-1])
-    excited = (window_excitation(U, slow_bins, layout) > EXCITATION_TOL).all(axis=1)
     systems, variances, oks = [], [], []
     for Y_o in rows:
         fit = fit_local_models(U, Y_o, layout, slow_bins=slow_bins,
                                chunk_size=chunk_size)
-        ok = fit.well_posed & np.isfinite(fit.rss) & excited
+        ok = fit.well_posed & np.isfinite(fit.rss)  # well_posed: excited too
         systems.append(np.where(ok[:, None], fit.system, np.nan))
         variances.append(np.where(ok[:, None], fit.system_var, np.nan))
         oks.append(ok)
