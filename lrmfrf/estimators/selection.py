@@ -66,22 +66,29 @@ the two wafer-stage records PMSE picks 1.05x (G_y4) and 1.12x (G_z), AICc
 1.05x and 1.02x.
 
 Rules tried for the worst records (issue 15, third round;
-``benchmarks/selection_rules.py``: the same 80 tuning records, every
-candidate's band values and variances cached and re-scored). The records
-above 1.25x are decided in noise-dominated bands (33-67 % of the oracle's
-bins have more than 30 % relative error), where the oracle takes low
-degrees: PMSE over-predicts the oracle's error there 2.4-5.2x and that of its
-own (richer) pick 0.8-1.8x, because the bias estimate ``|G_c - G_r|^2 -
-var_r`` compares with the rich reference, whose actual error is 1.2-2.2x its
-Lemma-2 variance (and the clip at 0 adds ``var_r / e`` in expectation to an
-unbiased candidate far from it). None of these fixed them (mean / worst):
-subtracting 1.5-6 ``var_r`` (1.074-1.081x / 1.56-1.58x), averaging the bias
-estimate over 3-25 slow bins before the clip (1.076-1.080x / 1.56x), the
-errors-in-variables variances of ``frf_std_`` instead of Lemma 2's
-(1.084-1.092x / 1.58-1.63x; on three of the worst records they are
-1.2-1.5x Lemma 2's for numerator degree 2 and 1.8-2.5x for the richest
-candidates, but the bias term still decides), the per-bin blend or the band-wise
-median of the candidates as the reference (1.08-1.12x / 1.56-1.63x). The
+``benchmarks/selection_rules.py --cache tune.pkl --diagnose``, the cache
+written by ``--seeds 1000-1019 --cache tune.pkl``: the same 80 tuning
+records, every candidate's band values and variances cached and re-scored;
+``--seeds 2000-2019 --wafer`` for the held-out ones). The records above
+1.25x are decided in noise-dominated bands (33-62 % of the oracle's bins
+have more than 30 % relative error; 67 % on the held-out one), where the
+oracle takes low degrees (four of the five): PMSE over-predicts the oracle's
+error there 2.45-5.28x and that of its own (richer in four) pick
+0.80-1.78x (its predicted relative squared error over the median of the
+actual one on the same band values), because the bias estimate ``|G_c -
+G_r|^2 - var_r`` compares with the rich reference, whose actual squared
+error is 1.78-3.16x its Lemma-2 variance (the median of ``|G_r - G|^2 /
+var_r`` over ``ln 2``, 1 for complex Gaussian errors of that variance), and
+the clip at 0 adds ``var_r / e`` in expectation to an unbiased candidate far
+from it. None of these fixed
+them (mean / worst): subtracting 1.5-6 ``var_r`` (1.077-1.079x / 1.56x),
+averaging the bias estimate over 3-25 slow bins before the clip
+(1.076-1.080x / 1.56x), the errors-in-variables variances of ``frf_std_``
+instead of Lemma 2's (1.091x / 1.63x; on the five worst records they are
+1.17-1.37x Lemma 2's for numerator degree 2 and 2.02-2.50x for the
+reference, the widest richest candidate, but the bias term still decides),
+the per-bin blend or the band-wise median of the candidates as the reference
+(1.075-1.087x / 1.56-1.58x). The
 per-bin blend (``per_band=True``) does better on both counts, 0.964x /
 1.37x, and with softer weights (``exp(-10 (score - best))`` over 21 slow
 bins) 0.975x / 1.28x (one record above 1.25x), but not held out (82
