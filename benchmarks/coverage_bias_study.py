@@ -44,7 +44,10 @@ route), on the same fits:
     centred at ``k`` and the local models of the windows centred at
     ``k - 1`` and ``k + 1`` evaluated at offset ``+1`` and ``-1`` (their
     ``theta`` in ``local_fit_``); the median over the record's bins sets
-    the scale of ``d / v`` on pure noise.
+    the scale of ``d / v`` on pure noise. Windows 0 and M/2 use their one
+    inner neighbour. ``switch2+nbr_c4`` is the library's
+    ``std_method="eiv_robust"`` (:mod:`lrmfrf.uncertainty`; this script calls
+    its functions).
 ``<base>+<term>``
     A bias term added to another base (``eiv_t``, ``pool``, ``pmed``,
     ``switch<c>``, ``shrink``) instead of ``eiv``; ``nbr_c4+ref2m_c8`` adds
@@ -93,7 +96,15 @@ from lrmfrf import LRMBeyondNyquist  # noqa: E402
 from lrmfrf.local_models import dft, one_sided_fast_grid  # noqa: E402
 from lrmfrf.signals import multisine  # noqa: E402
 from lrmfrf.simulate import simulate, true_frf  # noqa: E402
-from lrmfrf.uncertainty import eiv_terms, pooled_noise_variance  # noqa: E402
+from lrmfrf.uncertainty import (  # noqa: E402
+    eiv_terms,
+    neighbour_bias_term,
+    pooled_noise_variance,
+    robust_noise_variance,
+)
+from lrmfrf.uncertainty import (  # noqa: E402
+    neighbour_disagreement as library_disagreement,
+)
 
 
 def ref_settings(F):
@@ -110,30 +121,10 @@ def kappa(q):
 
 def neighbour_disagreement(est):
     """Mean squared disagreement of each band value with the neighbouring
-    windows' local models at offset -+1, shape (M//2+1, F)."""
-    lay, lf = est.layout_, est.local_fit_
-    F, n, nb = lay.F, lay.half_window, lay.n_bands
-    theta = lf.theta
-    B = theta.shape[0]
-
-    def value(x):
-        num = sum(theta[:, s * nb:(s + 1) * nb] * x**s
-                  for s in range(lay.num_degree + 1))
-        den = 1.0 + sum(theta[:, lay.den_columns][:, s - 1] * x**s
-                        for s in range(1, lay.den_degree + 1))
-        return F * num / den[:, None]
-
-    plus, minus = value(1.0 / n), value(-1.0 / n)  # window k at bins k+1, k-1
-    G0 = lf.system
-    left = np.empty_like(G0)
-    right = np.empty_like(G0)
-    left[1:] = plus[:-1]
-    right[:-1] = minus[1:]
-    # windows -1 and M/2+1 are the mirrors of windows 1 and M/2-1
-    left[0] = np.conj(minus[1, ::-1])
-    right[B - 1] = np.conj(plus[B - 2, ::-1])
-    d = 0.5 * (np.abs(G0 - left) ** 2 + np.abs(G0 - right) ** 2)
-    return d
+    windows' local models at offset -+1, shape (M//2+1, F)
+    (:func:`lrmfrf.uncertainty.neighbour_disagreement`, the library's
+    ``"eiv_robust"``; windows 0 and M/2 use their one inner neighbour)."""
+    return library_disagreement(est.local_fit_)
 
 
 def pooled_factor(U, Y, est):
@@ -198,12 +189,10 @@ def bias_term(G, v, Gr, vr, c):
 
 def nbr_term(d, v, bins, c):
     """``d`` where ``d / v`` exceeds ``c`` times its median over the record
-    (over the bins ``bins``)."""
-    with np.errstate(invalid="ignore", divide="ignore"):
-        z = d / v
-    med = np.nanmedian(z[:, bins], axis=1, keepdims=True)
-    add = np.where(z > c * med, d, 0.0)
-    return np.where(np.isfinite(add), add, 0.0)
+    (over the bins ``bins``), run by run
+    (:func:`lrmfrf.uncertainty.neighbour_bias_term`)."""
+    return np.array([neighbour_bias_term(dr, vr, c, mask=bins)
+                     for dr, vr in zip(d, v, strict=True)])
 
 
 REF_C = (4.6,)
@@ -212,29 +201,26 @@ NBR_C = (4.0, 8.0)
 SWITCH_C = (1.5, 2.0)
 
 
-def neighbour_windows(values, n_slow, half_width):
-    """``values`` (runs, M//2+1) of the windows ``k-h..k+h`` of each window
-    ``k`` (the windows beyond 0 and M/2 are mirrors), (runs, M//2+1, 2h+1)."""
-    k = np.arange(n_slow // 2 + 1)
-    j = (k[:, None] + np.arange(-half_width, half_width + 1)) % n_slow
-    return values[:, np.minimum(j, n_slow - j)]
-
-
 def noise_levels(data, F):
     """Per variant, the noise level of each run's windows over the window's
-    own (``sigma^2 / sigma^2_local``), (runs, M//2+1)."""
-    from scipy.stats import chi2
-
+    own (``sigma^2 / sigma^2_local``), (runs, M//2+1)
+    (:func:`lrmfrf.uncertainty.robust_noise_variance`)."""
     s2 = data["s2"]
     q = data["q"]["main"]
-    near = neighbour_windows(s2, 2 * (s2.shape[1] - 1), HALF_WINDOW[F])
-    # median of the neighbours, scaled to a mean (chi^2 with 2q real dof)
-    med = np.nanmedian(near, axis=2) / (chi2.median(2 * q) / (2 * q))
-    out = {"pmed": med / s2}
+    B = s2.shape[1]
+    bins = np.arange(B)
+    M = 2 * (B - 1)
+
+    def level(switch):
+        return np.array([robust_noise_variance(r, np.ones(B), bins, M,
+                                               HALF_WINDOW[F], q, switch=switch)
+                         for r in s2])
+
+    out = {"pmed": level(np.inf) / s2}
     for c in SWITCH_C:
         # the window's own level where it is well above its neighbours'
         # (model misfit), the neighbours' median elsewhere
-        out[f"switch{c:g}"] = np.where(s2 > c * med, 1.0, med / s2)
+        out[f"switch{c:g}"] = level(c) / s2
     return out
 
 

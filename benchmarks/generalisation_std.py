@@ -44,9 +44,14 @@ from lrmfrf.local_models import dft, one_sided_fast_grid
 from lrmfrf.plants import random_stage, wafer_stage
 from lrmfrf.signals import multisine, orthogonal_multisines
 from lrmfrf.simulate import simulate, true_frf
-from lrmfrf.uncertainty import band_covariance, variance_terms
+from lrmfrf.uncertainty import (
+    band_covariance,
+    robust_band_covariance,
+    variance_terms,
+)
 
-ROUTES = ("default", "lemma2", "eiv", "hc", "eiv_pooled", "eiv_dof", "eiv_true")
+ROUTES = ("default", "lemma2", "eiv", "hc", "eiv_pooled", "eiv_dof", "eiv_robust",
+          "eiv_true")
 
 #: Half window per F: the default 18, and 23 at F = 5 (10 residual dof).
 HALF_WINDOW = {2: 18, 3: 18, 4: 18, 5: 23}
@@ -95,7 +100,9 @@ def route_variances(U, Y, est, routes, true_noise_variance):
     M = Y.shape[1]
     N = M * layout.F
     for route in routes:
-        if route == "eiv_true":
+        if route == "eiv_robust":  # + the neighbour term (local models)
+            cov = robust_band_covariance(terms.eiv_lead, terms.eiv_trace, fit, M)
+        elif route == "eiv_true":
             s2 = np.full(fit.slow_bins.size, true_noise_variance)
             cov = band_covariance(terms, layout, "eiv", noise_variance=s2)
         else:
