@@ -245,6 +245,22 @@ def test_errors_name_the_option(record):
         next(iter_calibrated_fits(spectra, layout, "eiv_robust"))
 
 
+@pytest.mark.parametrize("refinement", [{"sk_iterations": 2},
+                                        {"lm_iterations": 2}])
+def test_refinement_with_the_robust_route_is_an_error(record, refinement):
+    """The route is computed from the closed form's neighbouring local models;
+    refined fits keep their own noise level for every route but "eiv", so
+    "eiv_robust" with SK or LM would silently give Lemma 2's refined std (the
+    same as std_method="lemma2"): an error naming the fix, before the data
+    are read."""
+    u, y = record
+    est = LRMBeyondNyquist(std_method="eiv_robust", **refinement)
+    with pytest.raises(ValueError, match=r"eiv_robust.*closed form.*'eiv'"):
+        est.fit(u, y, 3)
+    with pytest.raises(ValueError, match=r"eiv_robust.*closed form"):
+        est.fit(None, None, 3)  # a parameter error, checked first
+
+
 # --- Monte Carlo ------------------------------------------------------------------
 
 def _coverage(stage_seed, channel, n_runs, M=200, F=3, snr_db=30):

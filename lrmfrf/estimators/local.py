@@ -366,7 +366,8 @@ default="eiv"
         linearised variance; with ``"eiv"`` it is scaled to the closed form's
         errors-in-variables noise variance of the same window
         (:func:`lrmfrf.uncertainty.calibrated_refined_fit`), with the other
-        routes it is the refinement's own.
+        routes it is the refinement's own (``"eiv_robust"`` is for the closed
+        form only: an error with refinement).
 
     Attributes
     ----------
@@ -526,6 +527,20 @@ default="eiv"
         self.guard = guard
         self.jump = jump
         self.verbose = verbose
+
+    def _checked_params(self) -> dict:
+        """As the base class; ``std_method="eiv_robust"`` is for the closed
+        form only (refined fits would keep their own noise level)."""
+        params = super()._checked_params()
+        if params["std_method"] == "eiv_robust" and self._refines(params):
+            raise ValueError(
+                "std_method='eiv_robust' is computed from the closed form's "
+                "local models and is not defined for refined fits; got "
+                f"sk_iterations={params['sk_iterations']} and lm_iterations="
+                f"{params['lm_iterations']}. Use std_method='eiv' with "
+                "refinement, or sk_iterations=0 and lm_iterations=0."
+            )
+        return params
 
     def _local_degrees(self, params: dict) -> tuple[dict, dict]:
         degrees = {
