@@ -324,20 +324,13 @@ def pooled_noise_variance(
     ndarray of shape (B,)
         NaN where the window itself is NaN.
     """
-    M = n_slow
-    k = np.arange(M)
-    source = np.minimum(k, M - k)  # mirror window of each slow bin
-    position = np.full(M // 2 + 1, -1)
-    position[slow_bins] = np.arange(slow_bins.size)
-    idx = position[source]
-    ok = (idx >= 0)
-    num_full = np.where(ok, residual_power[np.maximum(idx, 0)], np.nan)
-    den_full = np.where(ok, expected[np.maximum(idx, 0)], np.nan)
+    num_full = _slow_bin_values(residual_power, slow_bins, n_slow)
+    den_full = _slow_bin_values(expected, slow_bins, n_slow)
     usable = np.isfinite(num_full) & np.isfinite(den_full)
     num_full = np.where(usable, num_full, 0.0)
     den_full = np.where(usable, den_full, 0.0)
     offsets = np.arange(-half_width, half_width + 1)
-    window = (slow_bins[:, None] + offsets) % M
+    window = (slow_bins[:, None] + offsets) % n_slow
     with np.errstate(invalid="ignore", divide="ignore"):
         pooled = num_full[window].sum(axis=1) / den_full[window].sum(axis=1)
     pooled[~(np.isfinite(residual_power) & np.isfinite(expected))] = np.nan
