@@ -541,12 +541,10 @@ def band_covariance(
     layout : LocalModelLayout
     method : {"lemma2", "eiv", "hc", "eiv_pooled", "eiv_dof", "eiv_robust"}, \
 default "eiv"
-        See the module docstring. ``"eiv_robust"``: its noise part only (the
-        switched noise level; the neighbour term needs the local models,
-        :func:`robust_band_covariance`).
+        See the module docstring. ``"eiv_robust"`` raises: its neighbour
+        term needs the local models (:func:`robust_band_covariance`).
     slow_bins, n_slow : optional
-        Window centres (``0..M//2``) and ``M``; needed by ``"eiv_pooled"`` and
-        ``"eiv_robust"``.
+        Window centres (``0..M//2``) and ``M``; needed by ``"eiv_pooled"``.
     noise_variance : ndarray of shape (B,), optional
         A known variance of ``V_l(k)`` instead of the residual estimate
         (``"eiv"``: ``sigma^2``; ``"lemma2"``: the variance of ``eps``);
@@ -571,10 +569,12 @@ default "eiv"
             disc = np.maximum(t**2 - 4 * a * terms.rss, 0.25 * t**2)
             s2 = 2 * terms.rss / (t + np.sqrt(disc))
         elif method == "eiv_robust":
-            if slow_bins is None or n_slow is None:
-                raise ValueError("method='eiv_robust' needs slow_bins and n_slow.")
-            s2 = robust_noise_variance(terms.rss, terms.eiv_trace, slow_bins,
-                                       n_slow, layout.half_window, terms.dof)
+            raise ValueError(
+                "band_covariance cannot compute method='eiv_robust': its "
+                "neighbour term needs the local models, which VarianceTerms "
+                "does not hold. Use robust_band_covariance(terms.eiv_lead, "
+                "terms.eiv_trace, local_fit, n_slow) or calibrated_local_fit."
+            )
         elif method == "eiv_pooled":
             if slow_bins is None or n_slow is None:
                 raise ValueError("method='eiv_pooled' needs slow_bins and n_slow.")
