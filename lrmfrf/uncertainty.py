@@ -48,11 +48,13 @@ assume about ``eps``:
     models of the windows centred at ``k - 1`` and ``k + 1`` evaluated at
     ``k``, wherever ``d`` over the ``"eiv"`` variance exceeds 4 times its
     median over the record (:func:`robust_band_covariance`). Measured in the
-    study (random stages and ``wafer_stage()``, ``M = 400``): 2-std coverage
-    96.3-97.1 % and median ratio to the Monte-Carlo std 0.99-1.04 in 7 of 9
-    cells (F = 2, 3, 5 at 30, 45, 70 dB); F = 2 at 30 dB covers 95.8 %, F = 5
-    at 70 dB has ratio 1.068 (``"eiv"``: about 94.5 %). Whole record only
-    (not streamed, not compiled).
+    study (``python benchmarks/coverage_bias_study.py --F 2 3 5 --snr 30 45
+    70``: 10 random stages and ``wafer_stage()``, ``M = 400``, 30 runs):
+    2-std coverage 96.3-97.0 % and median ratio to the Monte-Carlo std
+    1.00-1.04 in 7 of 9 cells (F = 2, 3, 5 at 30, 45, 70 dB); F = 2 at 30 dB
+    covers 95.8 %, F = 5 at 70 dB covers 97.1 % at ratio 1.068 (``"eiv"``:
+    93.9-95.2 %). Whole record only (not streamed; the eiv terms compiled,
+    the neighbour term in numpy).
 
 References
 ----------
