@@ -333,8 +333,12 @@ def mimo_monte_carlo(system, F, snr_db, n_runs, seed,
             for o, lf in enumerate(fit.local_fit_):
                 terms = variance_terms(U, Y[:, o], fit.layout_, lf.theta,
                                        lf.slow_bins, with_hc=False)
-                cov = band_covariance(terms, fit.layout_, route,
-                                      slow_bins=lf.slow_bins, n_slow=N_SLOW)
+                if route == "eiv_robust":  # + the neighbour term (local models)
+                    cov = robust_band_covariance(terms.eiv_lead, terms.eiv_trace,
+                                                 lf, N_SLOW)
+                else:
+                    cov = band_covariance(terms, fit.layout_, route,
+                                          slow_bins=lf.slow_bins, n_slow=N_SLOW)
                 d = np.real(np.diagonal(cov, axis1=1, axis2=2))
                 for i in range(2):
                     v[o, i] = one_sided_fast_grid(d[:, i * F:(i + 1) * F], N, F,
@@ -359,7 +363,7 @@ def _mimo_main(args) -> int:
     from lrmfrf.plants import mimo_wafer_stage
 
     routes = tuple(r for r in args.routes
-                   if r in ("default", "lemma2", "eiv", "eiv_pooled"))
+                   if r in ("default", "lemma2", "eiv", "eiv_pooled", "eiv_robust"))
     print(f"2x2 (G[0:2, 0:2]), two orthogonal experiments, {args.runs} runs; "
           "ratio / coverage per route")
     for F in args.F:

@@ -48,11 +48,13 @@ assume about ``eps``:
     models of the windows centred at ``k - 1`` and ``k + 1`` evaluated at
     ``k``, wherever ``d`` over the ``"eiv"`` variance exceeds 4 times its
     median over the record (:func:`robust_band_covariance`). Measured in the
-    study (random stages and ``wafer_stage()``, ``M = 400``): 2-std coverage
-    96.3-97.1 % and median ratio to the Monte-Carlo std 0.99-1.04 in 7 of 9
-    cells (F = 2, 3, 5 at 30, 45, 70 dB); F = 2 at 30 dB covers 95.8 %, F = 5
-    at 70 dB has ratio 1.068 (``"eiv"``: about 94.5 %). Whole record only
-    (not streamed, not compiled).
+    study (``python benchmarks/coverage_bias_study.py --F 2 3 5 --snr 30 45
+    70``: 10 random stages and ``wafer_stage()``, ``M = 400``, 30 runs):
+    2-std coverage 96.3-97.0 % and median ratio to the Monte-Carlo std
+    1.00-1.04 in 7 of 9 cells (F = 2, 3, 5 at 30, 45, 70 dB); F = 2 at 30 dB
+    covers 95.8 %, F = 5 at 70 dB covers 97.1 % at ratio 1.068 (``"eiv"``:
+    93.9-95.2 %). Whole record only (not streamed; the eiv terms compiled,
+    the neighbour term in numpy).
 
 References
 ----------
@@ -324,20 +326,13 @@ def pooled_noise_variance(
     ndarray of shape (B,)
         NaN where the window itself is NaN.
     """
-    M = n_slow
-    k = np.arange(M)
-    source = np.minimum(k, M - k)  # mirror window of each slow bin
-    position = np.full(M // 2 + 1, -1)
-    position[slow_bins] = np.arange(slow_bins.size)
-    idx = position[source]
-    ok = (idx >= 0)
-    num_full = np.where(ok, residual_power[np.maximum(idx, 0)], np.nan)
-    den_full = np.where(ok, expected[np.maximum(idx, 0)], np.nan)
+    num_full = _slow_bin_values(residual_power, slow_bins, n_slow)
+    den_full = _slow_bin_values(expected, slow_bins, n_slow)
     usable = np.isfinite(num_full) & np.isfinite(den_full)
     num_full = np.where(usable, num_full, 0.0)
     den_full = np.where(usable, den_full, 0.0)
     offsets = np.arange(-half_width, half_width + 1)
-    window = (slow_bins[:, None] + offsets) % M
+    window = (slow_bins[:, None] + offsets) % n_slow
     with np.errstate(invalid="ignore", divide="ignore"):
         pooled = num_full[window].sum(axis=1) / den_full[window].sum(axis=1)
     pooled[~(np.isfinite(residual_power) & np.isfinite(expected))] = np.nan
@@ -548,12 +543,10 @@ def band_covariance(
     layout : LocalModelLayout
     method : {"lemma2", "eiv", "hc", "eiv_pooled", "eiv_dof", "eiv_robust"}, \
 default "eiv"
-        See the module docstring. ``"eiv_robust"``: its noise part only (the
-        switched noise level; the neighbour term needs the local models,
-        :func:`robust_band_covariance`).
+        See the module docstring. ``"eiv_robust"`` raises: its neighbour
+        term needs the local models (:func:`robust_band_covariance`).
     slow_bins, n_slow : optional
-        Window centres (``0..M//2``) and ``M``; needed by ``"eiv_pooled"`` and
-        ``"eiv_robust"``.
+        Window centres (``0..M//2``) and ``M``; needed by ``"eiv_pooled"``.
     noise_variance : ndarray of shape (B,), optional
         A known variance of ``V_l(k)`` instead of the residual estimate
         (``"eiv"``: ``sigma^2``; ``"lemma2"``: the variance of ``eps``);
@@ -578,10 +571,12 @@ default "eiv"
             disc = np.maximum(t**2 - 4 * a * terms.rss, 0.25 * t**2)
             s2 = 2 * terms.rss / (t + np.sqrt(disc))
         elif method == "eiv_robust":
-            if slow_bins is None or n_slow is None:
-                raise ValueError("method='eiv_robust' needs slow_bins and n_slow.")
-            s2 = robust_noise_variance(terms.rss, terms.eiv_trace, slow_bins,
-                                       n_slow, layout.half_window, terms.dof)
+            raise ValueError(
+                "band_covariance cannot compute method='eiv_robust': its "
+                "neighbour term needs the local models, which VarianceTerms "
+                "does not hold. Use robust_band_covariance(terms.eiv_lead, "
+                "terms.eiv_trace, local_fit, n_slow) or calibrated_local_fit."
+            )
         elif method == "eiv_pooled":
             if slow_bins is None or n_slow is None:
                 raise ValueError("method='eiv_pooled' needs slow_bins and n_slow.")

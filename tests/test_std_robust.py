@@ -27,6 +27,7 @@ from lrmfrf.signals import multisine, orthogonal_multisines
 from lrmfrf.simulate import simulate, true_frf
 from lrmfrf.uncertainty import (
     ROBUST_NBR_THRESHOLD,
+    band_covariance,
     calibrated_local_fit,
     eiv_terms,
     iter_calibrated_fits,
@@ -34,6 +35,7 @@ from lrmfrf.uncertainty import (
     neighbour_disagreement,
     robust_band_covariance,
     robust_noise_variance,
+    variance_terms,
 )
 from lrmfrf.windows import LocalModelLayout
 
@@ -243,6 +245,33 @@ def test_errors_name_the_option(record):
     layout = LRMBeyondNyquist().fit(u, y, 3).layout_
     with pytest.raises(ValueError, match="'eiv_robust' does not stream"):
         next(iter_calibrated_fits(spectra, layout, "eiv_robust"))
+
+    # band_covariance has the variance terms but not the local models: it
+    # cannot add the neighbour term, so it names the function that can
+    # instead of returning the noise part under the route's name
+    fit = LRMBeyondNyquist(std_method="lemma2").fit(u, y, 3)
+    U, Y = dft(u)[None], dft(y)[None]
+    terms = variance_terms(U, Y, layout, fit.local_fit_.theta,
+                           fit.local_fit_.slow_bins, with_hc=False)
+    with pytest.raises(ValueError, match="robust_band_covariance"):
+        band_covariance(terms, layout, "eiv_robust",
+                        slow_bins=fit.local_fit_.slow_bins, n_slow=400)
+
+
+@pytest.mark.parametrize("refinement", [{"sk_iterations": 2},
+                                        {"lm_iterations": 2}])
+def test_refinement_with_the_robust_route_is_an_error(record, refinement):
+    """The route is computed from the closed form's neighbouring local models;
+    refined fits keep their own noise level for every route but "eiv", so
+    "eiv_robust" with SK or LM would silently give Lemma 2's refined std (the
+    same as std_method="lemma2"): an error naming the fix, before the data
+    are read."""
+    u, y = record
+    est = LRMBeyondNyquist(std_method="eiv_robust", **refinement)
+    with pytest.raises(ValueError, match=r"eiv_robust.*closed form.*'eiv'"):
+        est.fit(u, y, 3)
+    with pytest.raises(ValueError, match=r"eiv_robust.*closed form"):
+        est.fit(None, None, 3)  # a parameter error, checked first
 
 
 # --- Monte Carlo ------------------------------------------------------------------

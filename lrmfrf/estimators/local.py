@@ -359,14 +359,16 @@ default="eiv"
         window the median of its neighbours' (its own where that is over
         twice the median: model misfit), plus the squared disagreement with
         the neighbouring windows' local models where it stands out; about
-        96-97 % 2-std coverage at 0.99-1.04x the Monte-Carlo std where
-        ``"eiv"`` covers about 94.5 % (``benchmarks/coverage_bias_study.py``,
-        route ``switch2+nbr_c4``; F = 2 at 30 dB: 95.8 %). Refined fits
+        96-97 % 2-std coverage at 1.00-1.04x the Monte-Carlo std where
+        ``"eiv"`` covers 94-95 % (``benchmarks/coverage_bias_study.py``,
+        route ``switch2+nbr_c4``; F = 2 at 30 dB: 95.8 %, F = 5 at 70 dB:
+        ratio 1.07). Refined fits
         (``sk_iterations``, ``lm_iterations``) keep the shape of their
         linearised variance; with ``"eiv"`` it is scaled to the closed form's
         errors-in-variables noise variance of the same window
         (:func:`lrmfrf.uncertainty.calibrated_refined_fit`), with the other
-        routes it is the refinement's own.
+        routes it is the refinement's own (``"eiv_robust"`` is for the closed
+        form only: an error with refinement).
 
     Attributes
     ----------
@@ -526,6 +528,20 @@ default="eiv"
         self.guard = guard
         self.jump = jump
         self.verbose = verbose
+
+    def _checked_params(self) -> dict:
+        """As the base class; ``std_method="eiv_robust"`` is for the closed
+        form only (refined fits would keep their own noise level)."""
+        params = super()._checked_params()
+        if params["std_method"] == "eiv_robust" and self._refines(params):
+            raise ValueError(
+                "std_method='eiv_robust' is computed from the closed form's "
+                "local models and is not defined for refined fits; got "
+                f"sk_iterations={params['sk_iterations']} and lm_iterations="
+                f"{params['lm_iterations']}. Use std_method='eiv' with "
+                "refinement, or sk_iterations=0 and lm_iterations=0."
+            )
+        return params
 
     def _local_degrees(self, params: dict) -> tuple[dict, dict]:
         degrees = {

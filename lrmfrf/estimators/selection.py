@@ -970,7 +970,10 @@ class LRMBeyondNyquistCV(_LocalModelCV):
         Passing ``bands`` without ``per_band=True`` is an error.
     std_method : str, default as :class:`LRMBeyondNyquist`
         How the refitted estimator computes ``frf_std_``
-        (``LRMBeyondNyquist(std_method=...)``); it does not enter the choice.
+        (``LRMBeyondNyquist(std_method=...)``); it does not enter the
+        criterion, but with ``per_band=True`` and ``bands=None`` the per-bin
+        weights are computed from the candidates' ``frf_std_``, so it changes
+        the weights and the blended FRF.
 
     Attributes
     ----------
