@@ -27,7 +27,12 @@ of the noise level. Run::
     nice -n 5 python benchmarks/generalisation_std.py --seeds 1000-1019 \
         --F 2 3 5 --snr 25 30 45 70 --runs 100
 
-Tuning stages: seeds 1000-1019; held-out: seeds 2000-2019.
+Tuning stages: seeds 1000-1019; held-out: seeds 2000-2019. 2x2 stages
+(``random_stage(seed, downsampling_factor=F, mimo=True)`` and
+``mimo_wafer_stage``, :func:`mimo_monte_carlo`), one F per process::
+
+    nice -n 5 python benchmarks/generalisation_std.py --mimo --F 3 \
+        --seeds 1000-1009 --snr 30 45 70 --runs 30 --routes default eiv_robust
 """
 
 from __future__ import annotations
@@ -298,6 +303,10 @@ def refined_monte_carlo(system, F, snr_db, n_runs, seed, refinements):
     return out
 
 
+#: Routes of :func:`mimo_monte_carlo`.
+MIMO_ROUTES = ("default", "lemma2", "eiv", "eiv_pooled", "eiv_robust")
+
+
 def mimo_monte_carlo(system, F, snr_db, n_runs, seed,
                      routes=("default", "lemma2", "eiv", "eiv_pooled")):
     """Std ratio and coverage of each route on a 2x2 system, all four entries.
@@ -305,6 +314,9 @@ def mimo_monte_carlo(system, F, snr_db, n_runs, seed,
     Two orthogonal random-phase multisine experiments
     (:func:`lrmfrf.signals.orthogonal_multisines`) of ``N = 400 F`` samples;
     ``LRMBeyondNyquist`` defaults (half window 18, 23 at F = 5).
+    ``"eiv_robust"`` is the ``frf_std_`` of a second fit of the same record
+    with ``std_method="eiv_robust"`` (the same ``frf_``, checked; refitting
+    costs less than rebuilding the default fit's ``local_fit_``).
 
     Returns
     -------
@@ -329,16 +341,19 @@ def mimo_monte_carlo(system, F, snr_db, n_runs, seed,
             if route == "default":  # the estimator's own frf_std_
                 var[route].append(fit.frf_std_**2)
                 continue
+            if route == "eiv_robust":  # its own frf_std_ (whole record)
+                robust = LRMBeyondNyquist(half_window=HALF_WINDOW[F],
+                                          std_method="eiv_robust").fit(u, y, F)
+                if not np.array_equal(robust.frf_, fit.frf_, equal_nan=True):
+                    raise RuntimeError("eiv_robust changed frf_")
+                var[route].append(robust.frf_std_**2)
+                continue
             v = np.empty(truth.shape)
             for o, lf in enumerate(fit.local_fit_):
                 terms = variance_terms(U, Y[:, o], fit.layout_, lf.theta,
                                        lf.slow_bins, with_hc=False)
-                if route == "eiv_robust":  # + the neighbour term (local models)
-                    cov = robust_band_covariance(terms.eiv_lead, terms.eiv_trace,
-                                                 lf, N_SLOW)
-                else:
-                    cov = band_covariance(terms, fit.layout_, route,
-                                          slow_bins=lf.slow_bins, n_slow=N_SLOW)
+                cov = band_covariance(terms, fit.layout_, route,
+                                      slow_bins=lf.slow_bins, n_slow=N_SLOW)
                 d = np.real(np.diagonal(cov, axis1=1, axis2=2))
                 for i in range(2):
                     v[o, i] = one_sided_fast_grid(d[:, i * F:(i + 1) * F], N, F,
@@ -357,15 +372,35 @@ def mimo_monte_carlo(system, F, snr_db, n_runs, seed,
     return out
 
 
+def mimo_summary(results, routes):
+    """Per (F, SNR): the MC std's own coverage, then per route the median
+    (min, max) over systems of the ratio and the mean (min) coverage."""
+    lines = [f"{'F':>2} {'SNR':>4} {'route':<11} {'ratio med':>9} {'min':>6} "
+             f"{'max':>6} {'cover mean':>10} {'min':>6}"]
+    for (F, snr), cell in sorted(results.items()):
+        best = np.array([c["mc_cover"] for c in cell]) * 100
+        lines.append(f"{F:>2} {snr:>4g} {'(MC std)':<11} {'':>9} {'':>6} "
+                     f"{'':>6} {best.mean():9.1f}% {best.min():5.1f}%  "
+                     f"({len(cell)} systems)")
+        for route in routes:
+            ratio = np.array([c[route][0] for c in cell])
+            cover = np.array([c[route][1] for c in cell]) * 100
+            lines.append(f"{F:>2} {snr:>4g} {route:<11} {np.median(ratio):9.3f} "
+                         f"{ratio.min():6.3f} {ratio.max():6.3f} "
+                         f"{cover.mean():9.1f}% {cover.min():5.1f}%")
+    return "\n".join(lines)
+
+
 def _mimo_main(args) -> int:
     import warnings
 
     from lrmfrf.plants import mimo_wafer_stage
 
-    routes = tuple(r for r in args.routes
-                   if r in ("default", "lemma2", "eiv", "eiv_pooled", "eiv_robust"))
+    routes = tuple(r for r in args.routes if r in MIMO_ROUTES)
     print(f"2x2 (G[0:2, 0:2]), two orthogonal experiments, {args.runs} runs; "
           "ratio / coverage per route")
+    start = time.perf_counter()
+    results = {}
     for F in args.F:
         systems = []
         for seed in _seed_range(args.seeds):
@@ -375,15 +410,23 @@ def _mimo_main(args) -> int:
             systems.append(("mimo-wafer",
                             mimo_wafer_stage(downsampling_factor=F).G[0:2, 0:2]))
         for snr in args.snr:
+            cell = results.setdefault((F, snr), [])
             for i, (name, system) in enumerate(systems):
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")
                     res = mimo_monte_carlo(system, F, snr, args.runs,
                                            1000 * i + F, routes)
-                cells = " ".join(f"{r}={res[r][0]:.3f}/{res[r][1] * 100:.1f}%"
-                                 for r in routes)
-                print(f"F={F} {snr:g} dB {name}: {cells} "
-                      f"mc_cover={res['mc_cover'] * 100:.1f}%", flush=True)
+                cell.append(res)
+                if args.verbose:
+                    cells = " ".join(f"{r}={res[r][0]:.3f}/{res[r][1] * 100:.1f}%"
+                                     for r in routes)
+                    print(f"F={F} {snr:g} dB {name}: {cells} "
+                          f"mc_cover={res['mc_cover'] * 100:.1f}%", flush=True)
+            print(f"F={F} {snr:g} dB done, {time.perf_counter() - start:.0f} s",
+                  flush=True)
+    print(f"seeds {args.seeds}, wafer {not args.no_wafer}, {args.runs} runs, "
+          f"M = {N_SLOW}, {time.perf_counter() - start:.0f} s")
+    print(mimo_summary(results, routes))
     return 0
 
 

@@ -236,6 +236,30 @@ def test_mimo_rows_take_the_route():
     assert np.all((ratio > 0.9) & (ratio < 1.2)), ratio
 
 
+def test_mimo_entries_are_the_route_of_their_output_row():
+    """2x2, two experiments (the 3-D input of generalisation_std --mimo):
+    entry (o, i) of frf_std_ is the route of output row o on the bands of
+    input i (bands i F .. i F + F - 1 of the row's local problem), mapped to
+    the fast grid, to round-off."""
+    F, N = 2, 800
+    system = mimo_wafer_stage(downsampling_factor=F).G[0:2, 0:2]
+    rng = np.random.default_rng(1)
+    u = orthogonal_multisines(2, N, rms=1.44, rng=rng)
+    y = np.stack([simulate(system, u[p], F, snr_db=30, rng=rng).y_l
+                  for p in range(2)])
+    est = LRMBeyondNyquist(std_method="eiv_robust").fit(u, y, F)
+    assert est.frf_std_.shape == (2, 2, N // 2 + 1)
+    U, Y = dft(u).reshape(2, -1), dft(y)
+    for o in range(2):
+        fit = fit_local_models(U, Y[:, o], est.layout_, return_cov=True)
+        out = calibrated_local_fit(U, Y[:, o], est.layout_, fit, "eiv_robust")
+        for i in range(2):
+            expected = one_sided_fast_grid(out.system_var[:, i * F:(i + 1) * F],
+                                           N, F, conj=False)
+            np.testing.assert_allclose(est.frf_std_[o, i] ** 2, expected,
+                                       rtol=1e-9)
+
+
 def test_errors_name_the_option(record):
     u, y = record
     with pytest.raises(ValueError, match=r"`std_method` must be one of .*eiv_robust"):
