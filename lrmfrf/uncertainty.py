@@ -978,13 +978,29 @@ def calibrated_refined_fit(U, Y, layout: LocalModelLayout, closed_fit, refined_f
     closed_fit, refined_fit : LocalModelFit
         The closed form and its refinement on the same windows.
     method : str
+        A route of :data:`STD_METHODS` other than ``"eiv_robust"``.
 
     Returns
     -------
     LocalModelFit
         ``refined_fit`` itself, or a copy with ``system_var`` and
         ``system_cov`` scaled.
+
+    Raises
+    ------
+    ValueError
+        For a ``method`` that is not a route, and for ``"eiv_robust"``: it is
+        defined on the closed form's neighbouring local models only (returning
+        the refinement's own std under its name would be a silent wrong std).
     """
+    check_std_method(method, "method")
+    if method == "eiv_robust":
+        raise ValueError(
+            "calibrated_refined_fit cannot compute method='eiv_robust': the "
+            "route is defined on the closed form's local models only. Use "
+            "method='eiv' for a refined fit, or calibrated_local_fit for the "
+            "closed form."
+        )
     if method != "eiv" or _keeps_lemma2(method, layout):
         return refined_fit
     _, trace = eiv_terms(U, Y, layout, closed_fit.theta, closed_fit.slow_bins)

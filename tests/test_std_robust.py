@@ -23,12 +23,14 @@ from lrmfrf.local_models import (
     one_sided_fast_grid,
 )
 from lrmfrf.plants import mimo_wafer_stage, random_stage
+from lrmfrf.refinement import refine_local_models
 from lrmfrf.signals import multisine, orthogonal_multisines
 from lrmfrf.simulate import simulate, true_frf
 from lrmfrf.uncertainty import (
     ROBUST_NBR_THRESHOLD,
     band_covariance,
     calibrated_local_fit,
+    calibrated_refined_fit,
     eiv_terms,
     iter_calibrated_fits,
     neighbour_bias_term,
@@ -296,6 +298,32 @@ def test_refinement_with_the_robust_route_is_an_error(record, refinement):
         est.fit(u, y, 3)
     with pytest.raises(ValueError, match=r"eiv_robust.*closed form"):
         est.fit(None, None, 3)  # a parameter error, checked first
+
+
+@pytest.mark.filterwarnings("ignore::sklearn.exceptions.ConvergenceWarning")
+def test_refined_fit_function_refuses_the_robust_route(record):
+    """The public calibrated_refined_fit, like the estimator: "eiv_robust"
+    (and a misspelt route) raise instead of returning the refinement's own
+    std unchanged under that name; "eiv" still rescales it."""
+    u, y = record
+    layout = LRMBeyondNyquist().fit(u, y, 3).layout_
+    U, Y = dft(u)[None], dft(y)[None]
+    closed = fit_local_models(U, Y, layout, return_cov=True)
+    refined = refine_local_models(
+        U, Y, layout, closed, sk_iterations=2, lm_iterations=0, tol=1e-6,
+        guard=0.5, jump=5.0, keep_best=True, chunk_size=None, verbose=False,
+    ).local_fit
+    with pytest.raises(ValueError, match=r"eiv_robust.*closed form.*'eiv'"):
+        calibrated_refined_fit(U, Y, layout, closed, refined, "eiv_robust")
+    with pytest.raises(ValueError, match=r"`method` must be one of"):
+        calibrated_refined_fit(U, Y, layout, closed, refined, "eiv-robust")
+    scaled = calibrated_refined_fit(U, Y, layout, closed, refined, "eiv")
+    ratio = scaled.system_var / refined.system_var
+    ok = np.isfinite(ratio)
+    assert ok.any() and not np.allclose(ratio[ok], 1.0)
+    # one factor per window, the same for all bands
+    np.testing.assert_allclose(ratio[ok.all(axis=1)],
+                               ratio[ok.all(axis=1)][:, :1].repeat(3, axis=1))
 
 
 # --- Monte Carlo ------------------------------------------------------------------
