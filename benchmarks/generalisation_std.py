@@ -396,7 +396,15 @@ def _mimo_main(args) -> int:
 
     from lrmfrf.plants import mimo_wafer_stage
 
-    routes = tuple(r for r in args.routes if r in MIMO_ROUTES)
+    if args.routes is None:
+        args.routes = list(MIMO_ROUTES)
+    unknown = [r for r in args.routes if r not in MIMO_ROUTES]
+    if unknown:
+        raise SystemExit(
+            f"--mimo supports the routes {', '.join(MIMO_ROUTES)}; got "
+            f"{', '.join(unknown)}. Drop them from --routes."
+        )
+    routes = tuple(args.routes)
     print(f"2x2 (G[0:2, 0:2]), two orthogonal experiments, {args.runs} runs; "
           "ratio / coverage per route")
     start = time.perf_counter()
@@ -464,7 +472,8 @@ def main(argv=None) -> int:
     parser.add_argument("--F", type=int, nargs="+", default=[2, 3, 5])
     parser.add_argument("--snr", type=float, nargs="+", default=[25, 30, 45, 70])
     parser.add_argument("--runs", type=int, default=100)
-    parser.add_argument("--routes", nargs="+", default=list(ROUTES))
+    parser.add_argument("--routes", nargs="+", default=None,
+                        help="default: every route of the mode (SISO or --mimo)")
     parser.add_argument("--open", action="store_true",
                         help="also the open-loop channels of each stage")
     parser.add_argument("--channels", nargs="+", default=["G_y4", "G_z"])
@@ -486,6 +495,8 @@ def main(argv=None) -> int:
         return _refined_main(args)
     if args.mimo:
         return _mimo_main(args)
+    if args.routes is None:
+        args.routes = list(ROUTES)
     loops = ("closed", "open") if args.open else ("closed",)
     start = time.perf_counter()
 

@@ -277,7 +277,11 @@ def _refined_vs_closed(u, y, F, n, repeats: int = 3, **refinement) -> dict:
     from lrmfrf import LRMBeyondNyquist
 
     warnings.simplefilter("ignore")  # ConvergenceWarning at ten iterations
-    LRMBeyondNyquist(half_window=n, **refinement).fit(u[: 3000 * F], y[:3000], F)
+    # warm-up (JIT, caches) on the full record: a short one resolves to the
+    # numpy backend and would leave the compiled kernels' first call (compile
+    # or cache load) in the first timed fit
+    for params in ({}, refinement):
+        LRMBeyondNyquist(half_window=n, **params).fit(u, y, F)
 
     def best(**params):
         times, cpu = [], []
@@ -307,9 +311,9 @@ def _std_vs_lemma2(u, y, F, n, repeats: int = 3) -> dict:
     interleaved so that a change of the machine's load hits both alike."""
     from lrmfrf import LRMBeyondNyquist
 
-    for method in ("eiv", "lemma2"):  # warm-up (JIT, caches)
-        LRMBeyondNyquist(half_window=n, std_method=method).fit(
-            u[: 3000 * F], y[:3000], F)
+    for method in ("eiv", "lemma2"):  # warm-up (JIT, caches), full record:
+        # a short one would resolve to the numpy backend
+        LRMBeyondNyquist(half_window=n, std_method=method).fit(u, y, F)
     best = {"eiv": math.inf, "lemma2": math.inf}
     for _ in range(repeats):
         for method in best:
