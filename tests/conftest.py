@@ -37,3 +37,20 @@ def simulate_resonant(u, F, noise_std, rng, b=None, a=None):
     y_h = lfilter(b, a, u)
     y_l = y_h[..., ::F]
     return y_l + noise_std * rng.standard_normal(y_l.shape)
+
+
+def random_stage_record(seed: int = 3000, F: int = 3, snr_db: float = 40.0):
+    """``(u, y_l)`` of a random stage's ``G_z`` (seed 3000: neither tuning nor
+    held-out), N = 1200, one random-phase multisine."""
+    from lrmfrf.plants import random_stage
+    from lrmfrf.signals import multisine
+    from lrmfrf.simulate import simulate
+
+    stage, _ = random_stage(seed, downsampling_factor=F)
+    u = multisine(1200, rms=1.44, rng=1)
+    return u, simulate(stage.G_z, u, F, snr_db=snr_db, rng=2).y_l
+
+
+def band_variances(cov):
+    """Real diagonals of per-window band covariances ``(B, n, n)``."""
+    return np.real(np.diagonal(cov, axis1=1, axis2=2))

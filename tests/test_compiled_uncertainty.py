@@ -15,12 +15,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import band_variances, random_stage_record
 
 from lrmfrf import LRMBeyondNyquist
 from lrmfrf._compiled import AVAILABLE
 from lrmfrf._compiled_uncertainty import eiv_windows
 from lrmfrf.local_models import dft, fit_local_models
-from lrmfrf.plants import mimo_wafer_stage, random_stage
+from lrmfrf.plants import mimo_wafer_stage
 from lrmfrf.signals import multisine, orthogonal_multisines
 from lrmfrf.simulate import simulate
 from lrmfrf.solvers import (
@@ -44,17 +45,12 @@ pytestmark = pytest.mark.skipif(not AVAILABLE, reason="needs numba")
 EPS = np.finfo(float).eps
 
 
+
 @pytest.fixture(scope="module")
 def record():
     """A random stage (seed 3000), F = 3, 40 dB, M = 400."""
-    stage, _ = random_stage(3000, downsampling_factor=3)
-    u = multisine(1200, rms=1.44, rng=1)
-    sim = simulate(stage.G_z, u, 3, snr_db=40, rng=2)
-    return u, sim.y_l
+    return random_stage_record()
 
-
-def _diag(cov):
-    return np.real(np.diagonal(cov, axis1=1, axis2=2))
 
 
 def _both(u, y, layout):
@@ -74,7 +70,7 @@ def test_compiled_terms_equal_numpy_on_a_well_conditioned_layout(record):
                               transient_degree=2, den_degree=2)
     _, _, _, dense, lead, trace = _both(u, y, layout)
     np.testing.assert_allclose(trace, dense.eiv_trace, rtol=1e-10)
-    scale = np.sqrt(_diag(dense.eiv_lead))
+    scale = np.sqrt(band_variances(dense.eiv_lead))
     err = np.abs(lead - dense.eiv_lead) / (scale[:, :, None] * scale[:, None, :])
     assert np.max(err) <= 1e-10
 
@@ -88,7 +84,9 @@ def test_compiled_terms_equal_numpy_within_the_conditioning(record):
     A, _ = local_regressor(U, Y, fit.slow_bins, layout)
     cond = np.linalg.cond(A / np.linalg.norm(A, axis=1, keepdims=True))
     bound = 10 * EPS * cond**2
-    var_err = np.max(np.abs(_diag(lead) / _diag(dense.eiv_lead) - 1), axis=1)
+    var_err = np.max(
+        np.abs(band_variances(lead) / band_variances(dense.eiv_lead) - 1), axis=1
+    )
     trace_err = np.abs(trace / dense.eiv_trace - 1)
     assert np.all(var_err <= bound) and np.all(trace_err <= bound)
     assert np.median(var_err) <= 1e-10 and np.median(trace_err) <= 1e-10
@@ -114,7 +112,7 @@ def _numpy_route_std(U, Y, layout):
     terms = variance_terms(U, Y, layout, fit.theta, fit.slow_bins, with_hc=False)
     cov = band_covariance(terms, layout, "eiv")
     cov[~fit.well_posed] = np.nan
-    return np.sqrt(_diag(cov))
+    return np.sqrt(band_variances(cov))
 
 
 def test_streamed_estimator_std_is_the_numpy_route(record):
@@ -204,7 +202,7 @@ def _mimo_spectra(n_u, n_y, P, half_window, seed=0):
 
 def _lead_error(lead, reference):
     """Largest error of a band block relative to ``sqrt(ref_aa ref_bb)``."""
-    scale = np.sqrt(_diag(reference))
+    scale = np.sqrt(band_variances(reference))
     err = np.abs(lead - reference) / (scale[:, :, None] * scale[:, None, :])
     return np.max(err)
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import band_variances, random_stage_record
 from scipy.stats import chi2
 
 from lrmfrf import LRMBeyondNyquist
@@ -45,14 +46,7 @@ from lrmfrf.windows import LocalModelLayout
 @pytest.fixture(scope="module")
 def record():
     """A random stage (seed 3000: neither tuning nor held-out), F = 3, 40 dB."""
-    stage, _ = random_stage(3000, downsampling_factor=3)
-    u = multisine(1200, rms=1.44, rng=1)
-    sim = simulate(stage.G_z, u, 3, snr_db=40, rng=2)
-    return u, sim.y_l
-
-
-def _diag(cov):
-    return np.real(np.diagonal(cov, axis1=1, axis2=2))
+    return random_stage_record()
 
 
 def _polynomial_fit(layout, M, rng):
@@ -178,7 +172,7 @@ def test_route_is_eiv_shape_times_the_level_plus_a_nonnegative_term(record):
                                   layout.half_window, layout.dof)
     noise = 9 * lead * level[:, None, None]
     cov = robust_band_covariance(lead, trace, fit, 400)
-    var, noise_var = _diag(cov), _diag(noise)
+    var, noise_var = band_variances(cov), band_variances(noise)
     assert np.all(var >= noise_var * (1 - 1e-12))
     added = var > noise_var * (1 + 1e-12)
     assert 0 < added.mean() < 0.2  # a term at a few bins only
@@ -186,7 +180,7 @@ def test_route_is_eiv_shape_times_the_level_plus_a_nonnegative_term(record):
     off = ~np.eye(3, dtype=bool)
     np.testing.assert_allclose(cov[:, off], noise[:, off], rtol=1e-12)
     # the noise part is eiv's variance times level / own
-    v_eiv = _diag(9 * lead * own[:, None, None])
+    v_eiv = band_variances(9 * lead * own[:, None, None])
     np.testing.assert_allclose(noise_var, v_eiv * (level / own)[:, None],
                                rtol=1e-12)
     switched = level == own

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import band_variances, random_stage_record
 
 from lrmfrf import LPMBeyondNyquist, LRMBeyondNyquist
 from lrmfrf.local_models import dft, fit_local_models
@@ -29,14 +30,7 @@ from lrmfrf.windows import LocalModelLayout, local_regressor, window_offsets
 @pytest.fixture(scope="module")
 def record():
     """A random stage (seed 3000: neither tuning nor held-out), F = 3, 40 dB."""
-    stage, _ = random_stage(3000, downsampling_factor=3)
-    u = multisine(1200, rms=1.44, rng=1)
-    sim = simulate(stage.G_z, u, 3, snr_db=40, rng=2)
-    return u, sim.y_l
-
-
-def _diag(cov):
-    return np.real(np.diagonal(cov, axis1=1, axis2=2))
+    return random_stage_record()
 
 
 def _terms(u, y, layout):
@@ -51,7 +45,7 @@ def test_lemma2_route_is_the_estimators_old_variance(record):
     u, y = record
     est = LRMBeyondNyquist(std_method="lemma2").fit(u, y, 3)
     _, _, fit, terms = _terms(u, y, est.layout_)
-    var = _diag(band_covariance(terms, est.layout_, "lemma2"))
+    var = band_variances(band_covariance(terms, est.layout_, "lemma2"))
     np.testing.assert_allclose(var, est.local_fit_.system_var, rtol=1e-7)
     np.testing.assert_allclose(var, fit.system_var, rtol=1e-7)
 
@@ -90,7 +84,7 @@ def test_eiv_is_lemma2_without_denominator(record):
         kwargs = {"slow_bins": np.arange(201), "n_slow": 400}
         var = band_covariance(terms, lpm.layout_, method, **kwargs)
         if method == "eiv":
-            np.testing.assert_allclose(_diag(var), lpm.local_fit_.system_var,
+            np.testing.assert_allclose(band_variances(var), lpm.local_fit_.system_var,
                                        rtol=1e-7)
 
 
