@@ -767,3 +767,28 @@ def test_cv_passes_std_method_on():
     assert not np.allclose(lemma2.frf_std_, cv.frf_std_)
     with pytest.raises(ValueError, match="std_method"):
         LRMBeyondNyquistCV(std_method="bogus").fit(u, y, F)
+
+
+def test_cv_with_the_robust_std_route():
+    """``std_method="eiv_robust"`` reaches the refitted estimator (the same
+    choice as with ``"eiv"``, the robust route's std), and the per-band blend
+    weights by it."""
+    rng = np.random.default_rng(8)
+    u, y = _data(rng)
+    eiv = LRMBeyondNyquistCV(**SMALL_GRID, std_method="eiv").fit(u, y, F)
+    cv = LRMBeyondNyquistCV(**SMALL_GRID, std_method="eiv_robust").fit(u, y, F)
+    assert cv.best_estimator_.std_method == "eiv_robust"
+    assert cv.best_params_ == eiv.best_params_
+    ref = LRMBeyondNyquist(**cv.best_params_, std_method="eiv_robust").fit(u, y, F)
+    np.testing.assert_array_equal(cv.frf_std_, ref.frf_std_)
+    assert not np.allclose(cv.frf_std_, eiv.frf_std_, equal_nan=True)
+    blend = LRMBeyondNyquistCV(**SMALL_GRID, std_method="eiv_robust",
+                               per_band=True).fit(u, y, F)
+    blend_eiv = LRMBeyondNyquistCV(**SMALL_GRID, std_method="eiv",
+                                   per_band=True).fit(u, y, F)
+    valid = blend.valid_
+    assert valid.mean() > 0.9
+    assert np.all(np.isfinite(blend.frf_[valid]))
+    assert np.all(np.isfinite(blend.frf_std_[valid]) & (blend.frf_std_[valid] > 0))
+    # other weights, another blend
+    assert not np.allclose(blend.frf_[valid], blend_eiv.frf_[valid])
