@@ -1008,13 +1008,7 @@ def run_lane_groups(kernel, args, B: int, n_threads: int | None = None) -> None:
     ``numba.config.NUMBA_NUM_THREADS``)."""
     n_groups = (B + LANES - 1) // LANES
     threads = n_threads or numba.config.NUMBA_NUM_THREADS
-    # at least 4 tasks per thread when the groups allow: the last ones then
-    # balance the threads (with 8 groups a task, 18 groups went 10 and 8)
-    per_task = max(1, min(_GROUPS_PER_TASK, n_groups // (4 * threads)))
-    tasks = [
-        (start, min(n_groups, start + per_task))
-        for start in range(0, n_groups, per_task)
-    ]
+    tasks = _balanced_tasks(n_groups, threads)
     threads = min(threads, len(tasks))
     if threads <= 1:
         if n_groups:
@@ -1022,6 +1016,38 @@ def run_lane_groups(kernel, args, B: int, n_threads: int | None = None) -> None:
     else:  # the kernel releases the GIL: threads share the lane groups
         with ThreadPoolExecutor(threads) as pool:
             list(pool.map(lambda task: kernel(*args, *task), tasks))
+
+
+def _balanced_tasks(n_groups: int, threads: int) -> list[tuple[int, int]]:
+    """Lane-group ranges ``(start, stop)`` for ``threads`` threads taking
+    tasks from a shared queue.
+
+    At most :data:`_GROUPS_PER_TASK` groups a task and at least 4 tasks a
+    thread when the groups allow; the number of tasks is a multiple of
+    ``threads`` and their sizes differ by at most one group (larger first),
+    so the threads end within one group of each other (fixed-size tasks left
+    one thread idle for up to a whole task at the end of every call: 17
+    groups in tasks of 2 went 10 and 7 at worst).
+    """
+    if n_groups <= 0:
+        return []
+    per_task = max(1, min(_GROUPS_PER_TASK, n_groups // (4 * threads)))
+    n_tasks = -(-n_groups // per_task)
+    n_tasks = min(n_groups, threads * -(-n_tasks // threads))
+    base, extra = divmod(n_groups, n_tasks)
+    tasks, start = [], 0
+    for t in range(n_tasks):
+        stop = start + base + (t < extra)
+        tasks.append((start, stop))
+        start = stop
+    return tasks
+
+
+def chunk_quantum() -> int:
+    """Windows a streamed chunk is a multiple of: the lanes times the
+    kernel's threads, so that every thread gets as many lane groups."""
+    threads = numba.config.NUMBA_NUM_THREADS if AVAILABLE else 1
+    return LANES * max(1, int(threads))
 
 
 def _solve_results(outputs, one_row, return_cov):

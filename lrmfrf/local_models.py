@@ -22,7 +22,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy import fft as sp_fft
 
-from ._compiled import LANES
+from ._compiled import chunk_quantum
 from .solvers import (
     CHUNK_BYTES,
     lemma2_variance,
@@ -899,8 +899,9 @@ def stream_chunk_size(layout: LocalModelLayout, n_rows: int = 1) -> int:
     window energies and the caller's per-chunk copies) of ``n_rows`` output
     rows to about ``CHUNK_BYTES / 2``: the kernel solves each window alone,
     so the chunk only sets how much is held at once. A multiple of the
-    kernel's lanes (:data:`lrmfrf._compiled.LANES`), so that only the last
-    chunk has a partly filled lane group.
+    kernel's lanes times its threads (:func:`lrmfrf._compiled.chunk_quantum`),
+    so that only the last chunk has a partly filled lane group and every
+    thread gets as many groups of a chunk.
     """
     p, nb, P = layout.n_params, layout.n_bands, layout.n_experiments
     n_centre = nb + P
@@ -911,7 +912,8 @@ def stream_chunk_size(layout: LocalModelLayout, n_rows: int = 1) -> int:
         + 3 * layout.window * nb  # window energies (values and indices)
     )
     size = max(1024, CHUNK_BYTES // 2 // (per_window * max(1, n_rows)))
-    return size - size % LANES
+    quantum = chunk_quantum()
+    return max(quantum, size - size % quantum)
 
 
 def fast_grid_targets(start: int, stop: int, n_samples: int, F: int):

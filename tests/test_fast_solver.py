@@ -520,3 +520,22 @@ def test_kernel_wants_the_denominator_columns_last(noisy):
         _compiled.solve_windows(U, Y, np.arange(10), weights, col_base, 3, 4,
                                 fallback_tol=1e-6, refine_tol=REFINEMENT_TOL,
                                 refine_steps=1, tables=tables)
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3, 4])
+def test_lane_group_tasks_partition_and_balance(threads):
+    """The kernel's tasks cover every lane group once, in order, and threads
+    taking them from a queue end within one group of each other (groups of
+    equal cost)."""
+    from lrmfrf._compiled import _GROUPS_PER_TASK, _balanced_tasks
+
+    for n_groups in [0, 1, 2, 5, 16, 17, 18, 53, 78, 209, 1000]:
+        tasks = _balanced_tasks(n_groups, threads)
+        covered = [g for start, stop in tasks for g in range(start, stop)]
+        assert covered == list(range(n_groups))
+        sizes = [stop - start for start, stop in tasks]
+        assert all(1 <= s <= _GROUPS_PER_TASK for s in sizes)
+        busy = [0] * threads  # each task goes to the thread free first
+        for s in sizes:
+            busy[busy.index(min(busy))] += s
+        assert max(busy) - min(busy) <= 1, (n_groups, sizes, busy)
