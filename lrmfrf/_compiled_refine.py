@@ -45,6 +45,7 @@ import numpy as np
 
 from . import _compiled
 from ._compiled import AVAILABLE, LANES
+from ._jit_cache import drop_stale_caches
 
 __all__ = ["sk_windows", "root_in_disk"]
 
@@ -1263,6 +1264,9 @@ if AVAILABLE:  # pragma: no branch
     _push_result = njit(**_opts)(_push_result_py)
     _flush_results = njit(**_opts)(_flush_results_py)
     _lm_refill_range = njit(**_opts)(_lm_refill_range_py)
+    # these kernels inline _compiled's steps and LANES: numba's cache does not
+    # see that file change (lrmfrf._jit_cache)
+    drop_stale_caches(globals(), __file__, [_compiled.__file__])
 else:  # pragma: no cover
     _root_in_unit_disk = _root_in_unit_disk_py
 

@@ -54,6 +54,7 @@ import numpy as np
 
 from . import _compiled
 from ._compiled import LANES
+from ._jit_cache import drop_stale_caches
 
 if _compiled.AVAILABLE:  # pragma: no branch
     import numba
@@ -482,6 +483,9 @@ if _compiled.AVAILABLE:  # pragma: no branch
     _eiv_range = njit(**_opts)(_eiv_range_py)
     _lane_denominator_weight = njit(**_opts)(_lane_denominator_weight_py)
     _solve_eiv_range = njit(**_opts)(_solve_eiv_range_py)
+    # these kernels inline _compiled's steps and LANES: numba's cache does not
+    # see that file change (lrmfrf._jit_cache)
+    drop_stale_caches(globals(), __file__, [_compiled.__file__])
 
 
 def eiv_windows(
