@@ -539,3 +539,22 @@ def test_lane_group_tasks_partition_and_balance(threads):
         for s in sizes:
             busy[busy.index(min(busy))] += s
         assert max(busy) - min(busy) <= 1, (n_groups, sizes, busy)
+
+
+def test_single_threaded_blas_limits_and_restores():
+    """The normal-equation paths run BLAS on one thread and give the threads
+    back on exit; the threadpoolctl controller is made once per process."""
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    from lrmfrf.local_models import _blas_controller, _single_threaded_blas
+
+    def blas_threads():
+        return [lib["num_threads"] for lib in threadpoolctl.threadpool_info()
+                if lib["user_api"] == "blas"]
+
+    before = blas_threads()
+    if not before:  # pragma: no cover
+        pytest.skip("no BLAS library found by threadpoolctl")
+    with _single_threaded_blas():
+        assert blas_threads() == [1] * len(before)
+    assert blas_threads() == before
+    assert _blas_controller() is _blas_controller()
