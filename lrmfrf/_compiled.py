@@ -1045,8 +1045,10 @@ def _balanced_tasks(n_groups: int, threads: int) -> list[tuple[int, int]]:
 
 
 def chunk_quantum() -> int:
-    """Windows a streamed chunk is a multiple of: the lanes times the
-    kernel's threads, so that every thread gets as many lane groups."""
+    """Windows a streamed chunk is a multiple of when the memory budget holds
+    that many (:func:`lrmfrf.local_models.stream_chunk_size`): the lanes
+    times the kernel's threads, so that every thread gets as many lane
+    groups."""
     threads = numba.config.NUMBA_NUM_THREADS if AVAILABLE else 1
     return LANES * max(1, int(threads))
 
