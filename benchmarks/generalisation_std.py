@@ -497,6 +497,12 @@ def main(argv=None) -> int:
         return _mimo_main(args)
     if args.routes is None:
         args.routes = list(ROUTES)
+    unknown = [r for r in args.routes if r not in ROUTES]
+    if unknown:
+        raise SystemExit(
+            f"the SISO tables support the routes {', '.join(ROUTES)}; got "
+            f"{', '.join(unknown)}. Drop them from --routes."
+        )
     loops = ("closed", "open") if args.open else ("closed",)
     start = time.perf_counter()
 

@@ -1024,10 +1024,11 @@ def _balanced_tasks(n_groups: int, threads: int) -> list[tuple[int, int]]:
 
     At most :data:`_GROUPS_PER_TASK` groups a task and at least 4 tasks a
     thread when the groups allow; the number of tasks is a multiple of
-    ``threads`` and their sizes differ by at most one group (larger first),
-    so the threads end within one group of each other (fixed-size tasks left
-    one thread idle for up to a whole task at the end of every call: 17
-    groups in tasks of 2 went 10 and 7 at worst).
+    ``threads`` (or, with fewer groups than that, one task a group) and their
+    sizes differ by at most one group (larger first), so threads of equal
+    speed end within one group of each other (fixed-size tasks left one
+    thread idle for up to a whole task at the end of every call: 53 groups in
+    tasks of 6 went 29 and 24).
     """
     if n_groups <= 0:
         return []
@@ -1044,8 +1045,10 @@ def _balanced_tasks(n_groups: int, threads: int) -> list[tuple[int, int]]:
 
 
 def chunk_quantum() -> int:
-    """Windows a streamed chunk is a multiple of: the lanes times the
-    kernel's threads, so that every thread gets as many lane groups."""
+    """Windows a streamed chunk is a multiple of when the memory budget holds
+    that many (:func:`lrmfrf.local_models.stream_chunk_size`): the lanes
+    times the kernel's threads, so that every thread gets as many lane
+    groups."""
     threads = numba.config.NUMBA_NUM_THREADS if AVAILABLE else 1
     return LANES * max(1, int(threads))
 

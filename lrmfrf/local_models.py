@@ -23,7 +23,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy import fft as sp_fft
 
-from ._compiled import chunk_quantum
+from ._compiled import LANES, chunk_quantum
 from .solvers import (
     CHUNK_BYTES,
     lemma2_variance,
@@ -902,7 +902,10 @@ def stream_chunk_size(layout: LocalModelLayout, n_rows: int = 1) -> int:
     so the chunk only sets how much is held at once. A multiple of the
     kernel's lanes times its threads (:func:`lrmfrf._compiled.chunk_quantum`),
     so that only the last chunk has a partly filled lane group and every
-    thread gets as many groups of a chunk.
+    thread gets as many groups of a chunk; a multiple of the lanes only when
+    the budget holds fewer windows than that quantum (many threads, or many
+    parameters and rows): the threads then share fewer groups, but the chunk
+    stays within the budget instead of growing with the thread count.
     """
     p, nb, P = layout.n_params, layout.n_bands, layout.n_experiments
     n_centre = nb + P
@@ -914,7 +917,9 @@ def stream_chunk_size(layout: LocalModelLayout, n_rows: int = 1) -> int:
     )
     size = max(1024, CHUNK_BYTES // 2 // (per_window * max(1, n_rows)))
     quantum = chunk_quantum()
-    return max(quantum, size - size % quantum)
+    if size < quantum:
+        quantum = LANES
+    return max(LANES, size - size % quantum)
 
 
 def fast_grid_targets(start: int, stop: int, n_samples: int, F: int):

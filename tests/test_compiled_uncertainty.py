@@ -45,12 +45,10 @@ pytestmark = pytest.mark.skipif(not AVAILABLE, reason="needs numba")
 EPS = np.finfo(float).eps
 
 
-
 @pytest.fixture(scope="module")
 def record():
     """A random stage (seed 3000), F = 3, 40 dB, M = 400."""
     return random_stage_record()
-
 
 
 def _both(u, y, layout):

@@ -203,6 +203,35 @@ def test_streamed_chunks_equal_fit_local_models(backend, mimo):
     assert_same_fit(streamed, reference)
 
 
+@pytest.mark.skipif(not _compiled.AVAILABLE, reason="needs numba")
+@pytest.mark.parametrize("threads", [1, 2, 3, 16, 64, 128])
+def test_stream_chunk_does_not_grow_with_the_threads(monkeypatch, threads):
+    """A chunk is a multiple of the lanes times the threads when the memory
+    budget holds that many windows, of the lanes otherwise, and never holds
+    more windows than with one thread: with 64 threads a 4x4 fit's chunk was
+    6144 windows where the budget gives 960 (5.9 GB traced instead of 0.4)."""
+    cases = [
+        (LocalModelLayout(F=3, half_window=40, num_degree=2, transient_degree=2,
+                          den_degree=2), 1),
+        (LocalModelLayout(F=3, n_experiments=2, n_inputs=2, half_window=40,
+                          num_degree=2, transient_degree=2, den_degree=2), 2),
+        (LocalModelLayout(F=5, n_experiments=4, n_inputs=4, half_window=40,
+                          num_degree=2, transient_degree=2, den_degree=2), 5),
+    ]
+    config = _compiled.numba.config
+    for layout, rows in cases:
+        monkeypatch.setattr(config, "NUMBA_NUM_THREADS", 1)
+        single = stream_chunk_size(layout, rows)
+        monkeypatch.setattr(config, "NUMBA_NUM_THREADS", threads)
+        size = stream_chunk_size(layout, rows)
+        quantum = _compiled.LANES * threads
+        assert size % _compiled.LANES == 0 and _compiled.LANES <= size <= single
+        if single >= quantum:  # the budget holds a quantum: a multiple of it
+            assert size % quantum == 0 and size > single - quantum
+        else:
+            assert size == single
+
+
 # --- the estimators ----------------------------------------------------------------
 
 

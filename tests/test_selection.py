@@ -786,6 +786,9 @@ def test_cv_with_the_robust_std_route():
                                per_band=True).fit(u, y, F)
     blend_eiv = LRMBeyondNyquistCV(**SMALL_GRID, std_method="eiv",
                                    per_band=True).fit(u, y, F)
+    # every blended candidate, not only the best one, carries the route
+    assert len(blend.band_estimators_) > 1
+    assert all(e.std_method == "eiv_robust" for e in blend.band_estimators_)
     valid = blend.valid_
     assert valid.mean() > 0.9
     assert np.all(np.isfinite(blend.frf_[valid]))
