@@ -54,3 +54,12 @@ def random_stage_record(seed: int = 3000, F: int = 3, snr_db: float = 40.0):
 def band_variances(cov):
     """Real diagonals of per-window band covariances ``(B, n, n)``."""
     return np.real(np.diagonal(cov, axis1=1, axis2=2))
+
+
+#: Appended to bit-for-bit comparisons of two compiled kernels.
+CACHE_HINT = (
+    "a kernel compiled in this process and one loaded from numba's cache can "
+    "differ in the last bits: if this follows a change to a compiled module, "
+    "clear the cache (find lrmfrf -name '*.nb[ci]' -delete) and run again "
+    "(README, Layout)"
+)

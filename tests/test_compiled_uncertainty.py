@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import band_variances, random_stage_record
+from conftest import CACHE_HINT, band_variances, random_stage_record
 
 from lrmfrf import LRMBeyondNyquist
 from lrmfrf._compiled import AVAILABLE
@@ -326,13 +326,13 @@ def test_fused_terms_equal_the_separate_pass(n_u, n_y, P, half_window):
         *terms, valid = sol.eiv_raw
         assert valid.all()  # (well-conditioned windows: none re-solved by QR)
         for got, want in zip(terms, separate[:5], strict=True):
-            np.testing.assert_array_equal(got, want[o])
+            np.testing.assert_array_equal(got, want[o], err_msg=CACHE_HINT)
     lead, trace = _eiv_terms_compiled(U, Y, layout, theta, bins,
                                       [sol.eiv_raw for sol in fused])
     want_lead, want_trace = eiv_terms_rows(U, Y, layout, theta, bins,
                                            backend="numba")
-    np.testing.assert_array_equal(lead, want_lead)
-    np.testing.assert_array_equal(trace, want_trace)
+    np.testing.assert_array_equal(lead, want_lead, err_msg=CACHE_HINT)
+    np.testing.assert_array_equal(trace, want_trace, err_msg=CACHE_HINT)
 
 
 def test_fused_terms_recomputed_where_qr_resolves():
@@ -353,6 +353,6 @@ def test_fused_terms_recomputed_where_qr_resolves():
                                       [sol.eiv_raw for sol in fused])
     want_lead, want_trace = eiv_terms_rows(U, Y, layout, theta, bins,
                                            backend="numba")
-    np.testing.assert_array_equal(lead, want_lead)
-    np.testing.assert_array_equal(trace, want_trace)
+    np.testing.assert_array_equal(lead, want_lead, err_msg=CACHE_HINT)
+    np.testing.assert_array_equal(trace, want_trace, err_msg=CACHE_HINT)
     assert np.all(np.isfinite(trace[1, redone]))

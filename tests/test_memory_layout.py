@@ -16,7 +16,7 @@ import pickle
 
 import numpy as np
 import pytest
-from conftest import simulate_resonant
+from conftest import CACHE_HINT, simulate_resonant
 
 from lrmfrf import LPMBeyondNyquist, LRMBeyondNyquist, _compiled
 from lrmfrf.local_models import (
@@ -50,7 +50,7 @@ def assert_close(actual, desired, name=""):
     np.testing.assert_array_equal(np.isnan(actual), np.isnan(desired), err_msg=name)
     scale = np.nanmax(np.abs(desired)) if np.isfinite(desired).any() else 1.0
     np.testing.assert_allclose(actual, desired, rtol=0, atol=RTOL * scale,
-                               equal_nan=True, err_msg=name)
+                               equal_nan=True, err_msg=f"{name}: {CACHE_HINT}")
 
 
 def assert_same_fit(fit, reference):
