@@ -52,8 +52,6 @@ equations): up to about 1e-5 relative in the worst windows.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 
 from . import _compiled
@@ -61,12 +59,9 @@ from ._compiled import LANES
 from ._jit_cache import drop_stale_caches
 
 if _compiled.AVAILABLE:  # pragma: no branch
-    import numba
     from numba import njit
 
 __all__ = ["eiv_windows", "solve_eiv_windows"]
-
-_GROUPS_PER_TASK = 8
 
 
 def _eiv_range_py(
@@ -597,21 +592,7 @@ def eiv_windows(
         tw["ent_const"], int(tw["n_moments"]), int(p),
         float(fallback_tol) ** 2, lead, trace, wsum, wmin, wmax, ok,
     )
-    n_groups = (B + LANES - 1) // LANES
-    threads = n_threads or numba.config.NUMBA_NUM_THREADS
-    # at least 4 tasks per thread when the groups allow (as solve_windows)
-    per_task = max(1, min(_GROUPS_PER_TASK, n_groups // (4 * threads)))
-    tasks = [
-        (start, min(n_groups, start + per_task))
-        for start in range(0, n_groups, per_task)
-    ]
-    threads = min(threads, len(tasks))
-    if threads <= 1:
-        if n_groups:
-            _eiv_range(*args, 0, n_groups)
-    else:
-        with ThreadPoolExecutor(threads) as pool:
-            list(pool.map(lambda task: _eiv_range(*args, *task), tasks))
+    _compiled.run_lane_groups(_eiv_range, args, B, n_threads)
     lead = lead.view(np.complex128)[..., 0]
     out = (lead, trace, wsum, wmin, wmax, ok)
     return tuple(part[0] for part in out) if one_row else out
