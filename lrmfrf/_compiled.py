@@ -45,6 +45,8 @@ path up to round-off. Import never fails without numba: see
 
 from __future__ import annotations
 
+import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -1014,8 +1016,39 @@ def run_lane_groups(kernel, args, B: int, n_threads: int | None = None) -> None:
         if n_groups:
             kernel(*args, 0, n_groups)
     else:  # the kernel releases the GIL: threads share the lane groups
-        with ThreadPoolExecutor(threads) as pool:
-            list(pool.map(lambda task: kernel(*args, *task), tasks))
+        list(thread_pool(threads).map(lambda task: kernel(*args, *task), tasks))
+
+
+_POOLS: dict[int, ThreadPoolExecutor] = {}
+_POOLS_LOCK = threading.Lock()
+
+
+def thread_pool(threads: int) -> ThreadPoolExecutor:
+    """The process's pool of ``threads`` kernel threads, made at first use.
+
+    Kept for the process: starting the threads anew took 0.3-0.6 ms each
+    per call on a quiet 2-core machine (several ms under load), most of a
+    short record's kernel time. Calls from several threads share it (each
+    waits for its own tasks; kernels never submit tasks themselves); a forked
+    child makes its own (the parent's threads do not exist there).
+    """
+    with _POOLS_LOCK:
+        pool = _POOLS.get(threads)
+        if pool is None:
+            pool = _POOLS[threads] = ThreadPoolExecutor(
+                threads, thread_name_prefix=f"lrmfrf-kernel-{threads}"
+            )
+        return pool
+
+
+def _forget_pools_after_fork() -> None:
+    global _POOLS_LOCK
+    _POOLS.clear()
+    _POOLS_LOCK = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):  # pragma: no branch (POSIX)
+    os.register_at_fork(after_in_child=_forget_pools_after_fork)
 
 
 def _balanced_tasks(n_groups: int, threads: int) -> list[tuple[int, int]]:

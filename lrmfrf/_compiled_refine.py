@@ -39,8 +39,6 @@ estimate), with the same results.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 
 from . import _compiled
@@ -1505,8 +1503,7 @@ def _run_tasks(run, tasks: list, n_threads: int) -> None:
         for task in tasks:
             run(*task)
     else:
-        with ThreadPoolExecutor(threads) as pool:
-            list(pool.map(lambda task: run(*task), tasks))
+        list(_compiled.thread_pool(threads).map(lambda task: run(*task), tasks))
 
 
 def _layout_tuple(weights, col_base, tables, from_layout):

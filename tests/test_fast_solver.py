@@ -558,3 +558,28 @@ def test_single_threaded_blas_limits_and_restores():
         assert blas_threads() == [1] * len(before)
     assert blas_threads() == before
     assert _blas_controller() is _blas_controller()
+
+
+def _numba_fit_system(U, Y, layout):
+    return fit_local_models(U, Y, layout, backend="numba").system
+
+
+def test_kernel_threads_are_kept_and_made_again_after_fork():
+    """The kernel's thread pool is made once per thread count and reused;
+    a forked child (whose copy of the pool has no threads) fits with a pool
+    of its own, with the parent's result, instead of waiting forever."""
+    import multiprocessing
+
+    pytest.importorskip("numba")
+    assert _compiled.thread_pool(2) is _compiled.thread_pool(2)
+    assert _compiled.thread_pool(2) is not _compiled.thread_pool(3)
+    layout = LocalModelLayout(F=3, half_window=12, num_degree=2,
+                              transient_degree=2, den_degree=2)
+    u, y, _, _ = in_class_data(layout, 400, np.random.default_rng(3))
+    U, Y = np.fft.fft(u, axis=1), np.fft.fft(y, axis=1)
+    parent = _numba_fit_system(U, Y, layout)  # the pool exists before the fork
+    if "fork" not in multiprocessing.get_all_start_methods():  # pragma: no cover
+        pytest.skip("no fork start method on this platform")
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        child = pool.apply_async(_numba_fit_system, (U, Y, layout)).get(timeout=120)
+    np.testing.assert_array_equal(child, parent)
