@@ -122,7 +122,7 @@ def moment_tables(
     n = L // 2
     den_code = F + P
     x = (np.arange(L) - n) / max(n, 1)
-    deg = np.array([_degree(x, weights[:, i]) for i in range(p)], dtype=np.int64)
+    deg = _degrees(x, weights)
     top = np.zeros(F + P + 1, dtype=np.int64)
     for i in range(p):
         top[col_base[i]] = max(top[col_base[i]], deg[i])
@@ -169,36 +169,44 @@ def moment_tables(
         poff.append(offset)
         offset += nd
 
-    ent_ptr, ent_mom, ent_coef, ent_conj, ent_const = [0], [], [], [], []
+    # the packed lower Gram entries: a constant, or moments of one pair (the
+    # products of the two columns' polynomials expanded all at once)
+    ent_conj, ent_const, ent_key, expanded = [], [], [], []
     for i in range(p):
         for j in range(i + 1):
             a, b = col_base[i], col_base[j]
-            product = weights[:, i] * weights[:, j]
             lo, hi = max(a, b), min(a, b)
             ent_conj.append(a < b)
             key = (lo, hi)
             if key not in pairs:  # both transient constants
                 if not weighted or a != b:
+                    product = weights[:, i] * weights[:, j]
                     ent_const.append(product.sum() if a == b else 0.0)
-                    ent_ptr.append(len(ent_mom))
+                    ent_key.append(None)
                     continue
                 key = "ones"
             ent_const.append(0.0)
-            _, off, nd = pairs[key]
-            coef = _expand(q_basis[:, :nd], product)
-            keep = np.flatnonzero(coef)
-            ent_mom += list(off + keep)
-            ent_coef += list(coef[keep])
-            ent_ptr.append(len(ent_mom))
+            ent_key.append(key)
+            expanded.append((i, j, key))
+    first = np.array([e[0] for e in expanded], dtype=np.int64)
+    second = np.array([e[1] for e in expanded], dtype=np.int64)
+    column, index, ent_coef = _expand_columns(
+        q_basis, weights[:, first] * weights[:, second],
+        [pairs[e[2]][2] for e in expanded])
+    ent_mom = np.array([pairs[e[2]][1] for e in expanded],
+                       dtype=np.int64)[column] + index
+    # entry e's moments are ent_mom[ent_ptr[e]:ent_ptr[e+1]]; constants none
+    moments = np.zeros(len(ent_key), dtype=np.int64)
+    moments[[e for e, key in enumerate(ent_key) if key is not None]] = (
+        np.bincount(column, minlength=len(expanded)))
+    ent_ptr = np.concatenate([[0], np.cumsum(moments)])
 
-    rhs_ptr, rhs_mom, rhs_coef = [0], [], []
-    for i in range(p):
-        _, off, nd = pairs[(den_code, col_base[i])]
-        coef = _expand(q_basis[:, :nd], weights[:, i])
-        keep = np.flatnonzero(coef)
-        rhs_mom += list(off + keep)
-        rhs_coef += list(coef[keep])
-        rhs_ptr.append(len(rhs_mom))
+    rhs_pairs = [pairs[(den_code, col_base[i])] for i in range(p)]
+    column, index, rhs_coef = _expand_columns(
+        q_basis, weights, [nd for _, _, nd in rhs_pairs])
+    rhs_mom = np.array([off for _, off, _ in rhs_pairs],
+                       dtype=np.int64)[column] + index
+    rhs_ptr = np.concatenate([[0], np.cumsum(np.bincount(column, minlength=p))])
 
     as_int = lambda v: np.asarray(v, dtype=np.int64)  # noqa: E731
     return {
@@ -226,28 +234,49 @@ def _parity_basis(x: np.ndarray, degree: int) -> np.ndarray:
     return 0.5 * (q + sign * q[::-1])
 
 
-def _expand(q_basis: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """Coefficients of ``values`` in the orthonormal ``q_basis``; entries that
-    are zero by parity (round-off relative to the largest) are set to 0."""
-    coef = q_basis.T @ values
-    error = np.max(np.abs(q_basis @ coef - values), initial=0.0)
-    scale = np.max(np.abs(values), initial=0.0)
-    if error > 1e-11 * max(scale, 1e-300):
+def _expand_columns(q_basis: np.ndarray, values: np.ndarray, nds):
+    """Coefficients of every column ``values[:, e]`` in the orthonormal
+    ``q_basis[:, :nds[e]]``, with one product of matrices (the first ``nd``
+    coefficients in the whole basis are those in its first ``nd`` columns);
+    coefficients that are zero by parity (round-off relative to the column's
+    largest) are set to 0.
+
+    Returns the nonzero coefficients, column by column and in increasing
+    order within a column: ``(column, index, value)`` arrays.
+    """
+    nds = np.asarray(nds, dtype=np.int64)
+    coef = q_basis.T @ values  # (D, E)
+    coef[np.arange(q_basis.shape[1])[:, None] >= nds[None, :]] = 0.0
+    error = np.max(np.abs(q_basis @ coef - values), axis=0, initial=0.0)
+    scale = np.max(np.abs(values), axis=0, initial=0.0)
+    if np.any(error > 1e-11 * np.maximum(scale, 1e-300)):
         raise AssertionError("moment expansion is not exact; degree bound wrong")
-    coef[np.abs(coef) <= 1e-13 * np.max(np.abs(coef), initial=0.0)] = 0.0
-    return coef
+    largest = np.max(np.abs(coef), axis=0, initial=0.0)
+    coef[np.abs(coef) <= 1e-13 * largest[None, :]] = 0.0
+    column, index = np.nonzero(coef.T)
+    return column, index, coef[index, column]
 
 
-def _degree(x, values):
-    """Degree of the polynomial taking ``values`` on the grid ``x``."""
-    if not np.any(values):
-        return 0
+def _degrees(x, values):
+    """Degree of the polynomial taking ``values[:, i]`` on the grid ``x``, for
+    every column: the lowest Chebyshev fit whose residual is round-off (one
+    fit of all columns per degree)."""
+    p = values.shape[1]
+    deg = np.full(p, x.size - 1, dtype=np.int64)
+    scale = np.max(np.abs(values), axis=0)
+    todo = scale > 0
+    deg[~todo] = 0
     for d in range(x.size):
-        fit = np.polynomial.chebyshev.chebfit(x, values, d)
-        residual = values - np.polynomial.chebyshev.chebval(x, fit)
-        if np.max(np.abs(residual)) <= 1e-12 * np.max(np.abs(values)):
-            return d
-    return x.size - 1
+        if not todo.any():
+            break
+        part = values[:, todo]
+        fit = np.polynomial.chebyshev.chebfit(x, part, d)
+        residual = part - np.polynomial.chebyshev.chebval(x, fit).T
+        done = np.max(np.abs(residual), axis=0) <= 1e-12 * scale[todo]
+        index = np.flatnonzero(todo)[done]
+        deg[index] = d
+        todo[index] = False
+    return deg
 
 
 # ---------------------------------------------------------------------------

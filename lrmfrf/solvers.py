@@ -524,7 +524,7 @@ def resolve_backend(
     return backend
 
 
-@functools.lru_cache(maxsize=16)
+@functools.lru_cache(maxsize=128)
 def _compiled_tables(layout: LocalModelLayout):
     """Column weights, bases and moment tables of a layout (data-independent),
     in the internal order of :class:`~lrmfrf.windows.StructuredWindows`."""
@@ -535,7 +535,7 @@ def _compiled_tables(layout: LocalModelLayout):
     return weights, col_base, tables
 
 
-@functools.lru_cache(maxsize=16)
+@functools.lru_cache(maxsize=128)
 def _kernel_tables(layout: LocalModelLayout):
     """Column weights, bases, moment tables and ``to_layout`` matrix of
     :func:`lrmfrf._compiled.solve_windows`: the internal order with the
@@ -551,7 +551,7 @@ def _kernel_tables(layout: LocalModelLayout):
     return weights, col_base, tables, empty.to_layout_matrix[move]
 
 
-@functools.lru_cache(maxsize=16)
+@functools.lru_cache(maxsize=128)
 def _kernel_weighted_tables(layout: LocalModelLayout) -> dict:
     """Row-weighted moment tables (for ``A^H diag(w) A``) in the column order
     of :func:`_kernel_tables` (the denominator columns last)."""
@@ -561,7 +561,7 @@ def _kernel_weighted_tables(layout: LocalModelLayout) -> dict:
     )
 
 
-@functools.lru_cache(maxsize=16)
+@functools.lru_cache(maxsize=128)
 def _empty_windows(layout: LocalModelLayout) -> StructuredWindows:
     """A :class:`~lrmfrf.windows.StructuredWindows` without data: its column
     order, weights and ``to_layout`` matrix depend on the layout only."""

@@ -202,7 +202,7 @@ from ..local_models import (
     window_excitation,
 )
 from ..progress import progress
-from ..solvers import CHUNK_BYTES, solve_local_least_squares
+from ..solvers import CHUNK_BYTES, resolve_backend, solve_local_least_squares
 from ..uncertainty import DEFAULT_STD_METHOD, check_std_method
 from ..windows import LocalModelLayout, local_regressor
 from . import _bands
@@ -375,7 +375,7 @@ def _combine(per_bin, well_posed, layout, criterion, n_slow) -> float:
     return mean
 
 
-def _pmse_ingredients(U, Y, layout, *, chunk_size=None):
+def _pmse_ingredients(U, Y, layout, *, chunk_size=None, backend="auto"):
     """Band FRFs, their Lemma-2 variances and the well-posed mask per window.
 
     Solved by the estimator's own closed form
@@ -396,7 +396,7 @@ def _pmse_ingredients(U, Y, layout, *, chunk_size=None):
     systems, variances, oks = [], [], []
     for Y_o in rows:
         fit = fit_local_models(U, Y_o, layout, slow_bins=slow_bins,
-                               chunk_size=chunk_size)
+                               chunk_size=chunk_size, backend=backend)
         ok = fit.well_posed & np.isfinite(fit.rss)  # well_posed: excited too
         systems.append(np.where(ok[:, None], fit.system, np.nan))
         variances.append(np.where(ok[:, None], fit.system_var, np.nan))
@@ -736,8 +736,13 @@ class _LocalModelCV(_BaseFRFEstimator):
         Y = dft(y)[:, 0] if y.shape[1] == 1 else dft(y)  # (P, M) or (P, n_y, M)
         todo = [i for i, layout in enumerate(layouts) if layout is not None]
         if criterion == "pmse":
+            # the grid's work decides the solver's backend, not one candidate's:
+            # the compiled kernel pays for itself over a grid of short records
+            work = half_slow_bins(M).size * y.shape[1] * sum(
+                layouts[i].n_params ** 2 for i in todo)
+            backend = resolve_backend("auto", n_windows=work, n_params=1)
             ingredients = Parallel(n_jobs=params["n_jobs"])(
-                delayed(_pmse_ingredients)(U, Y, layouts[i])
+                delayed(_pmse_ingredients)(U, Y, layouts[i], backend=backend)
                 for i in progress(todo, enabled=params["verbose"],
                                   desc="candidates")
             )
