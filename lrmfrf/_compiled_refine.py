@@ -43,7 +43,7 @@ import numpy as np
 
 from . import _compiled
 from ._compiled import AVAILABLE, LANES
-from ._jit_cache import drop_stale_caches
+from ._jit_cache import key_caches_on
 
 __all__ = ["sk_windows", "root_in_disk"]
 
@@ -1264,7 +1264,7 @@ if AVAILABLE:  # pragma: no branch
     _lm_refill_range = njit(**_opts)(_lm_refill_range_py)
     # these kernels inline _compiled's steps and LANES: numba's cache does not
     # see that file change (lrmfrf._jit_cache)
-    drop_stale_caches(globals(), __file__, [_compiled.__file__])
+    key_caches_on(globals(), [_compiled.__file__])
 else:  # pragma: no cover
     _root_in_unit_disk = _root_in_unit_disk_py
 

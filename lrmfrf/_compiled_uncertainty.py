@@ -56,7 +56,7 @@ import numpy as np
 
 from . import _compiled
 from ._compiled import LANES
-from ._jit_cache import drop_stale_caches
+from ._jit_cache import key_caches_on
 
 if _compiled.AVAILABLE:  # pragma: no branch
     from numba import njit
@@ -484,7 +484,7 @@ if _compiled.AVAILABLE:  # pragma: no branch
     _solve_eiv_range = njit(**_opts)(_solve_eiv_range_py)
     # these kernels inline _compiled's steps and LANES: numba's cache does not
     # see that file change (lrmfrf._jit_cache)
-    drop_stale_caches(globals(), __file__, [_compiled.__file__])
+    key_caches_on(globals(), [_compiled.__file__])
 
 
 def eiv_windows(

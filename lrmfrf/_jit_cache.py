@@ -9,21 +9,21 @@ the old machine code after ``_compiled.py`` alone has changed, e.g. after a
 #8396). The stale code silently computes other results, or writes past its
 scratch arrays when ``LANES`` grew.
 
-:func:`drop_stale_caches` closes that gap: a module whose kernels call
-another file's kernels records a digest of those files next to its cache and
-empties its kernels' cache indexes (numba then compiles and caches them
-again) whenever the digest changes.
+:func:`key_caches_on` closes that gap: it adds a digest of the other files,
+read when the module is imported, to the stamp numba writes into and checks
+against each kernel's cache index. A process saves its kernels under the
+digest of the code it imported and loads only kernels saved under that same
+digest, so processes that imported different versions (one started before a
+``git pull``, one after) never load each other's machine code, whichever
+compiles first; each compiles its own instead.
 """
 
 from __future__ import annotations
 
 import hashlib
-import logging
 from pathlib import Path
 
-logger = logging.getLogger(__name__)
-
-__all__ = ["drop_stale_caches", "source_digest"]
+__all__ = ["key_caches_on", "source_digest"]
 
 
 def source_digest(paths) -> str:
@@ -34,42 +34,46 @@ def source_digest(paths) -> str:
     return digest.hexdigest()
 
 
-def drop_stale_caches(namespace: dict, module_file: str, dependencies) -> bool:
-    """Empty the cache indexes of the cached kernels in ``namespace`` when
-    the files in ``dependencies`` changed since they were cached.
+def key_caches_on(namespace: dict, dependencies) -> int:
+    """Key the on-disk caches of a module's kernels on ``dependencies`` too.
 
     Parameters
     ----------
     namespace : dict
-        A module's ``globals()``; its numba dispatchers with an on-disk cache
-        are checked (call before any of them runs: numba loads a kernel from
-        its cache at the first call).
-    module_file : str
-        The module's ``__file__`` (names the digest file).
+        A module's ``globals()``; the numba dispatchers with an on-disk cache
+        that the module itself defines are keyed (call before any of them
+        runs: numba loads a kernel from its cache at the first call).
     dependencies : iterable of str
         The source files whose kernels the module's kernels call.
 
     Returns
     -------
-    bool
-        Whether the caches were emptied (a changed or missing digest).
+    int
+        The number of kernels keyed (0 without numba's caching, e.g. with
+        ``NUMBA_DISABLE_JIT=1``).
+
+    Notes
+    -----
+    numba checks the stamp of a kernel's file when it loads the kernel's index
+    (an index with another stamp counts as empty) and writes it when it saves
+    a kernel; the stamp becomes ``(numba's stamp, digest)``. Nothing is
+    written at import, so a read-only cache directory changes nothing. An
+    index saved by an older lrmfrf (numba's stamp alone) is compiled again
+    once.
     """
-    caches = [d._cache for d in namespace.values()
-              if getattr(d, "py_func", None) is not None
-              and hasattr(getattr(d, "_cache", None), "cache_path")]
-    if not caches:
-        return False
-    digest = source_digest(dependencies)
-    stamp = Path(caches[0].cache_path) / f"{Path(module_file).stem}.deps.sha256"
-    try:
-        if stamp.is_file() and stamp.read_text().strip() == digest:
-            return False
-        for cache in caches:
-            cache.flush()  # an empty index: compiled and saved again
-        stamp.write_text(digest + "\n")
-    except OSError as error:  # a read-only cache directory: nothing cached
-        logger.debug("numba cache of %s not checked: %s", module_file, error)
-        return False
-    logger.debug("numba caches of %s emptied: %s changed", module_file,
-                 ", ".join(str(path) for path in dependencies))
-    return True
+    dependencies = list(dependencies)
+    digest = None
+    keyed = 0
+    for value in namespace.values():
+        py_func = getattr(value, "py_func", None)
+        cache_file = getattr(getattr(value, "_cache", None), "_cache_file", None)
+        if (py_func is None or cache_file is None
+                or py_func.__module__ != namespace.get("__name__")):
+            continue  # not a cached kernel of this module
+        if digest is None:
+            digest = source_digest(dependencies)
+        stamp = cache_file._source_stamp
+        if not (isinstance(stamp, tuple) and stamp[:1] == ("lrmfrf-deps",)):
+            cache_file._source_stamp = ("lrmfrf-deps", stamp, digest)
+        keyed += 1
+    return keyed
