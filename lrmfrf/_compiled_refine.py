@@ -1498,12 +1498,11 @@ def _run_groups(run, n_groups: int, n_threads: int) -> None:
 
 def _run_tasks(run, tasks: list, n_threads: int) -> None:
     """``run(task)`` for every task, on up to ``n_threads`` threads."""
-    threads = min(n_threads, len(tasks))
-    if threads <= 1:
+    if min(n_threads, len(tasks)) <= 1:
         for task in tasks:
             run(*task)
-    else:
-        list(_compiled.thread_pool(threads).map(lambda task: run(*task), tasks))
+    else:  # the pool of n_threads (lrmfrf._compiled.thread_pool)
+        list(_compiled.thread_pool(n_threads).map(lambda task: run(*task), tasks))
 
 
 def _layout_tuple(weights, col_base, tables, from_layout):

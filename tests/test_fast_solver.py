@@ -583,3 +583,38 @@ def test_kernel_threads_are_kept_and_made_again_after_fork():
     with multiprocessing.get_context("fork").Pool(1) as pool:
         child = pool.apply_async(_numba_fit_system, (U, Y, layout)).get(timeout=120)
     np.testing.assert_array_equal(child, parent)
+
+
+def test_one_kernel_pool_per_thread_count_asked_for(monkeypatch):
+    """Calls with fewer lane groups than threads use part of the pool of the
+    threads asked for instead of a pool per task count, which kept 65 idle
+    threads with 16 threads asked for (records of 2-15 lane groups); the
+    tasks still cover every group once."""
+    import threading
+
+    from lrmfrf._compiled_refine import _run_tasks
+
+    monkeypatch.setattr(_compiled, "_POOLS", {})
+    asked = 16
+    try:
+        for n_groups in range(1, asked + 3):
+            seen, lock = [], threading.Lock()
+
+            def kernel(first, stop, seen=seen, lock=lock):
+                with lock:
+                    seen.extend(range(first, stop))
+
+            _compiled.run_lane_groups(kernel, (), n_groups * _compiled.LANES,
+                                      n_threads=asked)
+            assert sorted(seen) == list(range(n_groups))
+            seen.clear()
+            _run_tasks(kernel, [(g, g + 1) for g in range(n_groups)], asked)
+            assert sorted(seen) == list(range(n_groups))
+        assert list(_compiled._POOLS) == [asked]
+        kernel_threads = [t for t in threading.enumerate()
+                          if t.name.startswith("lrmfrf-kernel-")
+                          and t in _compiled._POOLS[asked]._threads]
+        assert 2 <= len(kernel_threads) <= asked
+    finally:
+        for pool in _compiled._POOLS.values():
+            pool.shutdown(wait=True)
