@@ -795,3 +795,41 @@ def test_cv_with_the_robust_std_route():
     assert np.all(np.isfinite(blend.frf_std_[valid]) & (blend.frf_std_[valid] > 0))
     # other weights, another blend
     assert not np.allclose(blend.frf_[valid], blend_eiv.frf_[valid])
+
+
+def test_pmse_grid_on_the_compiled_kernel_selects_as_numpy(monkeypatch):
+    """A default grid on a short record (N = 1200, 201 windows) solves every
+    candidate with the compiled kernel (the grid's work 7.5e6 is above the
+    threshold, no candidate's alone is), and selects what the numpy solver
+    selects: the same candidate and FRF, the criterion equal up to the
+    normal equations' round-off (1e-6 relative: cond ~1e9 times eps)."""
+    pytest.importorskip("numba")
+    from conftest import random_stage_record
+
+    from lrmfrf import _compiled
+    from lrmfrf.estimators import selection
+
+    if not _compiled.AVAILABLE:  # pragma: no cover
+        pytest.skip("numba not importable")
+    used = []
+    fit = selection.fit_local_models
+
+    def spy(*args, **kwargs):
+        used.append(kwargs.get("backend", "auto"))
+        return fit(*args, **kwargs)
+
+    u, y = random_stage_record()
+    monkeypatch.setattr(selection, "fit_local_models", spy)
+    compiled = LRMBeyondNyquistCV().fit(u, y, 3)
+    assert used and set(used) == {"numba"}
+    used.clear()
+    monkeypatch.setenv("LRMFRF_DISABLE_NUMBA", "1")
+    plain = LRMBeyondNyquistCV().fit(u, y, 3)
+    assert used and set(used) == {"numpy"}
+    assert compiled.best_params_ == plain.best_params_
+    np.testing.assert_array_equal(compiled.frf_, plain.frf_)
+    criterion = compiled.cv_results_["criterion"]
+    want = plain.cv_results_["criterion"]
+    np.testing.assert_array_equal(np.isfinite(criterion), np.isfinite(want))
+    finite = np.isfinite(want)
+    np.testing.assert_allclose(criterion[finite], want[finite], rtol=1e-6)
