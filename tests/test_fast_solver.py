@@ -571,7 +571,7 @@ def _numba_fit_system(U, Y, layout):
     return fit_local_models(U, Y, layout, backend="numba").system
 
 
-def test_kernel_threads_are_kept_and_made_again_after_fork():
+def test_kernel_threads_are_kept_and_made_again_after_fork(monkeypatch):
     """The kernel's thread pool is made once per thread count and reused;
     a forked child (whose copy of the pool has no threads) fits with a pool
     of its own, with the parent's result, instead of waiting forever."""
@@ -580,11 +580,15 @@ def test_kernel_threads_are_kept_and_made_again_after_fork():
     pytest.importorskip("numba")
     assert _compiled.thread_pool(2) is _compiled.thread_pool(2)
     assert _compiled.thread_pool(2) is not _compiled.thread_pool(3)
+    # two kernel threads on any machine (on one core the fit would not use the
+    # pool, and the child could not hang)
+    monkeypatch.setattr(_compiled.numba.config, "NUMBA_NUM_THREADS", 2)
     layout = LocalModelLayout(F=3, half_window=12, num_degree=2,
                               transient_degree=2, den_degree=2)
     u, y, _, _ = in_class_data(layout, 400, np.random.default_rng(3))
     U, Y = np.fft.fft(u, axis=1), np.fft.fft(y, axis=1)
-    parent = _numba_fit_system(U, Y, layout)  # the pool exists before the fork
+    parent = _numba_fit_system(U, Y, layout)
+    assert _compiled.thread_pool(2)._threads  # the pool has threads at the fork
     if "fork" not in multiprocessing.get_all_start_methods():  # pragma: no cover
         pytest.skip("no fork start method on this platform")
     with multiprocessing.get_context("fork").Pool(1) as pool:
