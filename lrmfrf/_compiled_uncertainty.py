@@ -44,10 +44,15 @@ so the gather, the moments of ``G``, its factor and the denominator read of
 with the default std, SISO and 2x2 alike). Only the solve's windows re-solved
 by QR (rare) need :func:`eiv_windows` afterwards. Both give the same terms
 bit for bit (the same step functions in the same order) when both kernels
-were compiled alike; a kernel compiled in the running process and one loaded
-from numba's cache can differ in the last bits (FMA contraction), which the
-terms multiply by the window's condition number (1e9-1e11 for the LRM normal
-equations): up to about 1e-5 relative in the worst windows.
+were compiled alike. numba builds a kernel from the IR of the kernels it
+calls, and that IR is not the same when they were compiled in the same
+process and when they were loaded from its cache (which keeps their
+optimised IR): two kernels built in the two states can contract other
+multiply-adds and differ in the last bits (seen after deleting the cache
+index of one of them; recompiling a kernel alone in the same state gives
+its cached bits), which the terms multiply by the window's condition number
+(1e9-1e11 for the LRM normal equations): up to about 1e-5 relative in the
+worst windows.
 """
 
 from __future__ import annotations
