@@ -905,7 +905,9 @@ def stream_chunk_size(layout: LocalModelLayout, n_rows: int = 1) -> int:
     thread gets as many groups of a chunk; a multiple of the lanes only when
     the budget holds fewer windows than that quantum (many threads, or many
     parameters and rows): the threads then share fewer groups, but the chunk
-    stays within the budget instead of growing with the thread count.
+    stays within the budget instead of growing with the thread count. At
+    least one lane group, however large the layout (there is no larger floor:
+    a 1024-window floor held a 4x4, P = 4, F = 5 fit's chunks at 0.42 GB).
     """
     p, nb, P = layout.n_params, layout.n_bands, layout.n_experiments
     n_centre = nb + P
@@ -915,7 +917,7 @@ def stream_chunk_size(layout: LocalModelLayout, n_rows: int = 1) -> int:
         + 8 * nb + 4 * P  # band values, variances, transients
         + 3 * layout.window * nb  # window energies (values and indices)
     )
-    size = max(1024, CHUNK_BYTES // 2 // (per_window * max(1, n_rows)))
+    size = max(LANES, CHUNK_BYTES // 2 // (per_window * max(1, n_rows)))
     quantum = chunk_quantum()
     if size < quantum:
         quantum = LANES

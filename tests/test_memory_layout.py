@@ -232,6 +232,26 @@ def test_stream_chunk_does_not_grow_with_the_threads(monkeypatch, threads):
             assert size == single
 
 
+@pytest.mark.skipif(not _compiled.AVAILABLE, reason="needs numba")
+def test_stream_chunk_keeps_to_a_small_budget(monkeypatch):
+    """With a 1 MiB budget a chunk of the default SISO layout (about 4.4 kB a
+    window, 119 windows in half the budget) is one lane group, and a 4x4,
+    P = 4, F = 5 layout with four rows (about 0.2 MB a window) is one lane group
+    too: there is no floor above the lanes (it was 1024 windows, 0.2 GB here)."""
+    import lrmfrf.local_models as local_models
+
+    monkeypatch.setattr(local_models, "CHUNK_BYTES", 2**20)
+    monkeypatch.setattr(_compiled.numba.config, "NUMBA_NUM_THREADS", 1)
+    siso = LocalModelLayout(F=3, half_window=18, num_degree=4, transient_degree=4,
+                            den_degree=7)
+    big = LocalModelLayout(F=5, n_experiments=4, n_inputs=4, half_window=18,
+                           num_degree=4, transient_degree=4, den_degree=7)
+    assert stream_chunk_size(siso, 1) == _compiled.LANES
+    assert stream_chunk_size(big, 4) == _compiled.LANES
+    monkeypatch.setattr(local_models, "CHUNK_BYTES", 2**26)
+    assert stream_chunk_size(siso, 1) > 1024  # the default budget: many groups
+
+
 # --- the estimators ----------------------------------------------------------------
 
 
