@@ -902,12 +902,14 @@ def stream_chunk_size(layout: LocalModelLayout, n_rows: int = 1) -> int:
     so the chunk only sets how much is held at once. A multiple of the
     kernel's lanes times its threads (:func:`lrmfrf._compiled.chunk_quantum`),
     so that only the last chunk has a partly filled lane group and every
-    thread gets as many groups of a chunk; a multiple of the lanes only when
-    the budget holds fewer windows than that quantum (many threads, or many
-    parameters and rows): the threads then share fewer groups, but the chunk
-    stays within the budget instead of growing with the thread count. At
-    least one lane group, however large the layout (there is no larger floor:
-    a 1024-window floor held a 4x4, P = 4, F = 5 fit's chunks at 0.42 GB).
+    thread gets as many groups of a chunk.
+
+    When the budget holds fewer windows than that quantum (large MIMO layouts,
+    many threads), the chunk is one quantum as long as that is at most
+    :data:`MAX_STREAM_FLOOR` windows, so that no thread idles (one lane group
+    per chunk left one of two threads idle and doubled a 4x4, P = 4, F = 5
+    fit's time), and otherwise the budget's or that floor's windows in whole
+    lane groups: the chunk does not grow with the thread count beyond it.
     """
     p, nb, P = layout.n_params, layout.n_bands, layout.n_experiments
     n_centre = nb + P
@@ -917,11 +919,17 @@ def stream_chunk_size(layout: LocalModelLayout, n_rows: int = 1) -> int:
         + 8 * nb + 4 * P  # band values, variances, transients
         + 3 * layout.window * nb  # window energies (values and indices)
     )
-    size = max(LANES, CHUNK_BYTES // 2 // (per_window * max(1, n_rows)))
+    budget = CHUNK_BYTES // 2 // (per_window * max(1, n_rows))
     quantum = chunk_quantum()
-    if size < quantum:
-        quantum = LANES
-    return max(LANES, size - size % quantum)
+    if budget >= quantum:
+        return budget - budget % quantum
+    size = max(budget, min(quantum, MAX_STREAM_FLOOR))
+    return max(LANES, size - size % LANES)
+
+
+#: Largest chunk (windows) :func:`stream_chunk_size` takes beyond the memory
+#: budget, to give every kernel thread a lane group.
+MAX_STREAM_FLOOR = 1024
 
 
 def fast_grid_targets(start: int, stop: int, n_samples: int, F: int):

@@ -207,9 +207,14 @@ def test_streamed_chunks_equal_fit_local_models(backend, mimo):
 @pytest.mark.parametrize("threads", [1, 2, 3, 16, 64, 128])
 def test_stream_chunk_does_not_grow_with_the_threads(monkeypatch, threads):
     """A chunk is a multiple of the lanes times the threads when the memory
-    budget holds that many windows, of the lanes otherwise, and never holds
-    more windows than with one thread: with 64 threads a 4x4 fit's chunk was
-    6144 windows where the budget gives 960 (5.9 GB traced instead of 0.4)."""
+    budget holds that many windows; otherwise it gives every thread a lane
+    group up to 1024 windows (``MAX_STREAM_FLOOR``) and grows no further with
+    the thread count: with 64 threads a 4x4 fit's chunk was 6144 windows where
+    the budget gives fewer than 96 (5.9 GB traced instead of 0.4)."""
+    import lrmfrf.local_models as local_models
+
+    floor = local_models.MAX_STREAM_FLOOR
+    lanes = _compiled.LANES
     cases = [
         (LocalModelLayout(F=3, half_window=40, num_degree=2, transient_degree=2,
                           den_degree=2), 1),
@@ -224,20 +229,21 @@ def test_stream_chunk_does_not_grow_with_the_threads(monkeypatch, threads):
         single = stream_chunk_size(layout, rows)
         monkeypatch.setattr(config, "NUMBA_NUM_THREADS", threads)
         size = stream_chunk_size(layout, rows)
-        quantum = _compiled.LANES * threads
-        assert size % _compiled.LANES == 0 and _compiled.LANES <= size <= single
+        quantum = lanes * threads
+        assert size % lanes == 0 and lanes <= size <= max(single, floor)
         if single >= quantum:  # the budget holds a quantum: a multiple of it
             assert size % quantum == 0 and size > single - quantum
-        else:
-            assert size == single
+        else:  # a lane group per thread, up to the floor
+            assert size >= min(quantum, floor - floor % lanes)
 
 
 @pytest.mark.skipif(not _compiled.AVAILABLE, reason="needs numba")
 def test_stream_chunk_keeps_to_a_small_budget(monkeypatch):
-    """With a 1 MiB budget a chunk of the default SISO layout (about 4.4 kB a
-    window, 119 windows in half the budget) is one lane group, and a 4x4,
-    P = 4, F = 5 layout with four rows (about 0.2 MB a window) is one lane group
-    too: there is no floor above the lanes (it was 1024 windows, 0.2 GB here)."""
+    """With a 1 MiB budget and one thread a chunk of the default SISO layout
+    (about 4.4 kB a window, 119 windows in half the budget) is one lane group,
+    and a 4x4, P = 4, F = 5 layout with four rows (about 0.2 MB a window) too:
+    no 1024-window floor (0.2 GB here). With more threads a chunk gives each
+    one a lane group, up to 1024 windows."""
     import lrmfrf.local_models as local_models
 
     monkeypatch.setattr(local_models, "CHUNK_BYTES", 2**20)
@@ -248,6 +254,12 @@ def test_stream_chunk_keeps_to_a_small_budget(monkeypatch):
                            num_degree=4, transient_degree=4, den_degree=7)
     assert stream_chunk_size(siso, 1) == _compiled.LANES
     assert stream_chunk_size(big, 4) == _compiled.LANES
+    # two threads: one lane group each, not one group for both
+    monkeypatch.setattr(_compiled.numba.config, "NUMBA_NUM_THREADS", 2)
+    assert stream_chunk_size(big, 4) == 2 * _compiled.LANES
+    # 64 threads: at most the floor of 1024 windows, in whole lane groups
+    monkeypatch.setattr(_compiled.numba.config, "NUMBA_NUM_THREADS", 64)
+    assert stream_chunk_size(big, 4) == 1024 - 1024 % _compiled.LANES
     monkeypatch.setattr(local_models, "CHUNK_BYTES", 2**26)
     assert stream_chunk_size(siso, 1) > 1024  # the default budget: many groups
 
