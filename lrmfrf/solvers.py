@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import functools
 import os
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -524,7 +526,69 @@ def resolve_backend(
     return backend
 
 
-@functools.lru_cache(maxsize=128)
+#: Bytes each per-layout table cache below may hold (least recently used
+#: layouts are dropped first): a default grid of 64 SISO layouts takes about
+#: 7 MB in all four caches, but a 4x4, P = 4 layout at F = 8 about 3.8 MB.
+TABLE_CACHE_BYTES = 2**26
+
+
+def _nbytes(value) -> int:
+    """Bytes of the numpy arrays in ``value`` (tuples, lists, dicts and object
+    attributes, one level of objects deep)."""
+    if isinstance(value, np.ndarray):
+        return value.nbytes
+    if isinstance(value, (tuple, list)):
+        return sum(_nbytes(v) for v in value)
+    if isinstance(value, dict):
+        return sum(_nbytes(v) for v in value.values())
+    if hasattr(value, "__dict__") and not isinstance(value, type):
+        return sum(v.nbytes for v in vars(value).values()
+                   if isinstance(v, np.ndarray))
+    return 0
+
+
+def _layout_cache(function):
+    """Least-recently-used cache of a layout's tables, bounded by
+    :data:`TABLE_CACHE_BYTES` (read at each insertion) and 128 layouts; the
+    newest entry is kept even when it alone exceeds the bound. Thread-safe; a
+    table computed twice by racing threads is equal either way."""
+    entries: OrderedDict = OrderedDict()
+    lock = threading.Lock()
+    total = [0]
+
+    @functools.wraps(function)
+    def cached(layout):
+        with lock:
+            if layout in entries:
+                entries.move_to_end(layout)
+                return entries[layout][0]
+        value = function(layout)
+        size = _nbytes(value)
+        with lock:
+            if layout not in entries:
+                entries[layout] = (value, size)
+                total[0] += size
+            while len(entries) > 1 and (total[0] > TABLE_CACHE_BYTES
+                                        or len(entries) > 128):
+                _, (_, dropped) = entries.popitem(last=False)
+                total[0] -= dropped
+        return value
+
+    def cache_info() -> dict:
+        with lock:
+            return {"entries": len(entries), "bytes": total[0]}
+
+    def cache_clear() -> None:
+        with lock:
+            entries.clear()
+            total[0] = 0
+
+    cached.cache_info = cache_info
+    cached.cache_clear = cache_clear
+    return cached
+
+
+@_layout_cache
 def _compiled_tables(layout: LocalModelLayout):
     """Column weights, bases and moment tables of a layout (data-independent),
     in the internal order of :class:`~lrmfrf.windows.StructuredWindows`."""
@@ -535,7 +599,7 @@ def _compiled_tables(layout: LocalModelLayout):
     return weights, col_base, tables
 
 
-@functools.lru_cache(maxsize=128)
+@_layout_cache
 def _kernel_tables(layout: LocalModelLayout):
     """Column weights, bases, moment tables and ``to_layout`` matrix of
     :func:`lrmfrf._compiled.solve_windows`: the internal order with the
@@ -551,7 +615,7 @@ def _kernel_tables(layout: LocalModelLayout):
     return weights, col_base, tables, empty.to_layout_matrix[move]
 
 
-@functools.lru_cache(maxsize=128)
+@_layout_cache
 def _kernel_weighted_tables(layout: LocalModelLayout) -> dict:
     """Row-weighted moment tables (for ``A^H diag(w) A``) in the column order
     of :func:`_kernel_tables` (the denominator columns last)."""
@@ -561,7 +625,7 @@ def _kernel_weighted_tables(layout: LocalModelLayout) -> dict:
     )
 
 
-@functools.lru_cache(maxsize=128)
+@_layout_cache
 def _empty_windows(layout: LocalModelLayout) -> StructuredWindows:
     """A :class:`~lrmfrf.windows.StructuredWindows` without data: its column
     order, weights and ``to_layout`` matrix depend on the layout only."""

@@ -629,3 +629,31 @@ def test_one_kernel_pool_per_thread_count_asked_for(monkeypatch):
     finally:
         for pool in _compiled._POOLS.values():
             pool.shutdown(wait=True)
+
+
+def test_layout_table_caches_keep_to_their_byte_bound(monkeypatch):
+    """The per-layout table caches drop the least recently used layouts once
+    their arrays pass ``TABLE_CACHE_BYTES``: with a 1 MB bound, twelve 2x2
+    layouts (0.1 MB of kernel tables each) leave at most 1 MB cached; the
+    latest layout is served from the cache (the same object) and a dropped one
+    is rebuilt equal."""
+    from lrmfrf import solvers
+
+    monkeypatch.setattr(solvers, "TABLE_CACHE_BYTES", 10**6)
+    solvers._kernel_tables.cache_clear()
+    layouts = [LocalModelLayout(F=3, half_window=n, num_degree=4,
+                                transient_degree=4, den_degree=7,
+                                n_experiments=2, n_inputs=2)
+               for n in range(14, 26)]
+    first = solvers._kernel_tables(layouts[0])
+    for layout in layouts:
+        solvers._kernel_tables(layout)
+    info = solvers._kernel_tables.cache_info()
+    assert 0 < info["bytes"] <= 10**6 and info["entries"] < len(layouts)
+    last = solvers._kernel_tables(layouts[-1])
+    assert solvers._kernel_tables(layouts[-1]) is last
+    again = solvers._kernel_tables(layouts[0])  # dropped: rebuilt, equal
+    assert again is not first
+    for a, b in zip(first[:2], again[:2], strict=True):
+        np.testing.assert_array_equal(a, b)
+    solvers._kernel_tables.cache_clear()
