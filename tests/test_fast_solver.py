@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import simulate_resonant
+from conftest import blas_threads, simulate_resonant
 from scipy.signal import lfilter
 
 from lrmfrf import _compiled
@@ -544,12 +544,8 @@ def test_lane_group_tasks_partition_and_balance(threads):
 def test_single_threaded_blas_limits_and_restores():
     """The normal-equation paths run BLAS on one thread and give the threads
     back on exit; the threadpoolctl controller is made once per process."""
-    threadpoolctl = pytest.importorskip("threadpoolctl")
+    pytest.importorskip("threadpoolctl")
     from lrmfrf.local_models import _blas_controller, _single_threaded_blas
-
-    def blas_threads():
-        return [lib["num_threads"] for lib in threadpoolctl.threadpool_info()
-                if lib["user_api"] == "blas"]
 
     before = blas_threads()
     if not before:  # pragma: no cover
@@ -568,45 +564,12 @@ def test_single_threaded_blas_limits_and_restores():
 
 
 
-def _blas_threads(threadpoolctl):
-    return [lib["num_threads"] for lib in threadpoolctl.threadpool_info()
-            if lib["user_api"] == "blas"]
-
-
-@pytest.fixture
-def two_blas_threads():
-    """BLAS on (at least) two threads for the test, so that a limit to one can
-    be seen; the process's settings are put back afterwards. Nothing is left
-    holding OpenBLAS's controlling thread (threadpoolctl >= 3.8), which would
-    silently ignore the limits set from the test's worker threads."""
-    threadpoolctl = pytest.importorskip("threadpoolctl")
-    clear = getattr(threadpoolctl.OpenBLASController, "clear_controlling_thread",
-                    lambda: None)
-    if not _blas_threads(threadpoolctl):  # pragma: no cover
-        pytest.skip("no BLAS library found by threadpoolctl")
-    forced = None
-    if 1 in _blas_threads(threadpoolctl):
-        forced = threadpoolctl.threadpool_limits(limits=2, user_api="blas")
-        clear()
-    before = _blas_threads(threadpoolctl)
-    try:
-        if 1 in before:  # pragma: no cover
-            pytest.skip("BLAS cannot run on two threads here: a limit cannot be seen")
-        yield before
-    finally:
-        if forced is not None:
-            forced.restore_original_limits()
-            clear()
-
-
 def test_single_threaded_blas_overlapping_threads_restore(two_blas_threads):
     """Two threads whose single-threaded sections overlap (A enters, B enters,
     A leaves, B leaves: dask's or joblib's threads fitting at once) keep BLAS
     on one thread while either is inside and give the original threads back
     when the last one leaves, whichever thread limited first."""
     import threading
-
-    import threadpoolctl
 
     from lrmfrf.local_models import _single_threaded_blas
 
@@ -622,7 +585,7 @@ def test_single_threaded_blas_overlapping_threads_restore(two_blas_threads):
             with _single_threaded_blas():
                 a_in.set()
                 wait(b_in)
-                seen["both inside"] = _blas_threads(threadpoolctl)
+                seen["both inside"] = blas_threads()
         except BaseException as exc:  # pragma: no cover - reported below
             errors.append(exc)
         finally:
@@ -635,7 +598,7 @@ def test_single_threaded_blas_overlapping_threads_restore(two_blas_threads):
             with _single_threaded_blas():
                 b_in.set()
                 wait(a_out)
-                seen["B inside after A left"] = _blas_threads(threadpoolctl)
+                seen["B inside after A left"] = blas_threads()
         except BaseException as exc:  # pragma: no cover - reported below
             errors.append(exc)
         finally:
@@ -649,29 +612,27 @@ def test_single_threaded_blas_overlapping_threads_restore(two_blas_threads):
     assert not errors, errors
     one = [1] * len(before)
     assert seen == {"both inside": one, "B inside after A left": one}
-    assert _blas_threads(threadpoolctl) == before
+    assert blas_threads() == before
 
 
 def test_single_threaded_blas_nested_and_raising_restore(two_blas_threads):
     """A section entered again inside itself (the discrepancy workflow wraps
     fits that limit BLAS too) stays on one thread until the outer one ends,
     and a block that raises gives the threads back."""
-    import threadpoolctl
-
     from lrmfrf.local_models import _single_threaded_blas
 
     before = two_blas_threads
     one = [1] * len(before)
     with _single_threaded_blas():
         with _single_threaded_blas():
-            assert _blas_threads(threadpoolctl) == one
-        assert _blas_threads(threadpoolctl) == one
-    assert _blas_threads(threadpoolctl) == before
+            assert blas_threads() == one
+        assert blas_threads() == one
+    assert blas_threads() == before
     with pytest.raises(RuntimeError, match="inside"):
         with _single_threaded_blas():
             with _single_threaded_blas():
                 raise RuntimeError("inside")
-    assert _blas_threads(threadpoolctl) == before
+    assert blas_threads() == before
 
 
 def _numba_fit_system(U, Y, layout):
