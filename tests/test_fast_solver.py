@@ -635,6 +635,82 @@ def test_single_threaded_blas_nested_and_raising_restore(two_blas_threads):
     assert blas_threads() == before
 
 
+
+def test_single_threaded_blas_many_threads_in_and_out(two_blas_threads):
+    """Four threads entering and leaving (and nesting) many times in no set
+    order: BLAS is on one thread whenever any of them is inside, and back to
+    the original counts at the end."""
+    import threading
+
+    from lrmfrf.local_models import _single_threaded_blas
+
+    before = two_blas_threads
+    one = [1] * len(before)
+    start = threading.Barrier(4, timeout=60)
+    wrong, errors = [], []
+
+    def worker(seed):
+        try:
+            rng = np.random.default_rng(seed)
+            start.wait()
+            for _ in range(15):
+                with _single_threaded_blas():
+                    if rng.random() < 0.5:
+                        with _single_threaded_blas():
+                            pass
+                    if blas_threads() != one:
+                        wrong.append(blas_threads())
+        except BaseException as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=worker, args=(seed,)) for seed in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=120)
+    assert not errors, errors
+    assert wrong == []
+    assert blas_threads() == before
+
+
+def test_single_threaded_blas_per_thread_libraries(two_blas_threads, monkeypatch):
+    """A library whose count belongs to each calling thread (OpenBLAS on
+    OpenMP) is limited and restored by the thread itself, nested or raising:
+    this machine's BLAS handled as one."""
+    from lrmfrf import _blas_threads
+
+    before = two_blas_threads
+    one = [1] * len(before)
+    blas = _blas_threads.blas_controller().select(user_api="blas")
+    monkeypatch.setattr(_blas_threads, "_blas_libraries",
+                        lambda: (blas.select(filepath=[]), blas))
+    with _blas_threads.single_threaded_blas():
+        with _blas_threads.single_threaded_blas():
+            assert blas_threads() == one
+        assert blas_threads() == one
+    assert blas_threads() == before
+    with pytest.raises(RuntimeError, match="inside"):
+        with _blas_threads.single_threaded_blas():
+            raise RuntimeError("inside")
+    assert blas_threads() == before
+
+
+def test_openblas_on_openmp_counts_per_thread():
+    """Which BLAS libraries count threads per calling thread."""
+    from types import SimpleNamespace
+
+    from lrmfrf._blas_threads import _count_per_thread
+
+    def lib(internal_api, threading_layer):
+        return SimpleNamespace(internal_api=internal_api,
+                               threading_layer=threading_layer)
+
+    assert _count_per_thread(lib("openblas", "openmp"))
+    assert not _count_per_thread(lib("openblas", "pthreads"))
+    assert not _count_per_thread(lib("mkl", "intel"))
+    assert not _count_per_thread(SimpleNamespace(internal_api="blis"))
+
+
 def _numba_fit_system(U, Y, layout):
     return fit_local_models(U, Y, layout, backend="numba").system
 
