@@ -16,13 +16,14 @@ nothing of the size of the grid is allocated besides the outputs.
 from __future__ import annotations
 
 import contextlib
-import functools
 from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy import fft as sp_fft
 
+from ._blas_threads import blas_controller as _blas_controller  # noqa: F401 (as before)
+from ._blas_threads import single_threaded_blas as _single_threaded_blas
 from ._compiled import LANES, chunk_quantum
 from .solvers import (
     CHUNK_BYTES,
@@ -994,29 +995,6 @@ def _check_solver(solver: str, return_leverage: bool) -> str:
     if solver == "auto":
         return "qr" if return_leverage else "normal"
     return solver
-
-
-def _single_threaded_blas():
-    """Limit BLAS to one thread: the many small matrix products of the normal
-    equations are memory-bound, and threading them on a busy machine costs
-    several times more than it gains."""
-    try:
-        controller = _blas_controller()
-    except ImportError:  # pragma: no cover - scikit-learn depends on it
-        return contextlib.nullcontext()
-    return controller.limit(limits=1, user_api="blas")
-
-
-@functools.lru_cache(maxsize=1)
-def _blas_controller():
-    """The process's :class:`threadpoolctl.ThreadpoolController`, made once:
-    ``threadpool_limits`` scans the loaded libraries on every entry, about
-    2 ms (threadpoolctl 3.8, 2-core machine), and a fit of N = 1200 enters
-    twice: about 4 ms, a tenth of the fit. The BLAS that numpy and scipy use
-    are loaded by the time lrmfrf fits anything."""
-    from threadpoolctl import ThreadpoolController
-
-    return ThreadpoolController()
 
 
 def one_sided_fast_grid(values: np.ndarray, n_samples: int, F: int, *, conj: bool):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.signal import cont2discrete, lfilter
 
 
@@ -63,3 +64,38 @@ CACHE_HINT = (
     "clear the cache (find lrmfrf -name '*.nb[ci]' -delete) and run again "
     "(README, Layout)"
 )
+
+
+def blas_threads():
+    """The thread counts of the loaded BLAS libraries (threadpoolctl)."""
+    import threadpoolctl
+
+    return [lib["num_threads"] for lib in threadpoolctl.threadpool_info()
+            if lib["user_api"] == "blas"]
+
+
+@pytest.fixture
+def two_blas_threads():
+    """BLAS on (at least) two threads for the test, so that a limit to one can
+    be seen; the process's settings are put back afterwards. Nothing is left
+    holding OpenBLAS's controlling thread (threadpoolctl >= 3.8), which would
+    silently ignore the limits set from the test's worker threads."""
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    clear = getattr(threadpoolctl.OpenBLASController, "clear_controlling_thread",
+                    lambda: None)
+    if not blas_threads():  # pragma: no cover
+        pytest.skip("no BLAS library found by threadpoolctl")
+    forced = None
+    if 1 in blas_threads():
+        forced = threadpoolctl.threadpool_limits(limits=2, user_api="blas")
+        clear()
+    before = blas_threads()
+    try:
+        if 1 in before:  # pragma: no cover
+            pytest.skip("BLAS cannot run on two threads here: a limit cannot be seen")
+        yield before
+    finally:
+        if forced is not None:
+            forced.restore_original_limits()
+            clear()
+

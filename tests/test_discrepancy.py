@@ -536,6 +536,53 @@ def _call(stage, u, y, **kwargs):
         return diagnose(plant, u, y, 3, **options)
 
 
+
+def test_diagnose_shares_the_single_threaded_blas_section(
+        stage, small_data, two_blas_threads, monkeypatch):
+    """A fit in another thread (dask, joblib) whose single-threaded BLAS section
+    overlaps diagnose's: BLAS stays on one thread through the search after that
+    fit ends, and diagnose gives the original threads back when it ends."""
+    import threading
+
+    from conftest import blas_threads
+
+    from lrmfrf.discrepancy import workflow
+    from lrmfrf.local_models import _single_threaded_blas
+
+    before = two_blas_threads
+    fit_in, search_started, fit_out = (threading.Event() for _ in range(3))
+    seen, errors = {}, []
+
+    def other_fit():
+        try:
+            with _single_threaded_blas():
+                fit_in.set()
+                assert search_started.wait(timeout=60)
+        except BaseException as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+        finally:
+            fit_out.set()
+
+    def search(*args, **kwargs):
+        search_started.set()
+        assert fit_out.wait(timeout=60)
+        seen["search after the other fit ended"] = blas_threads()
+        return "report"
+
+    monkeypatch.setattr(workflow, "run_search", search)
+    thread = threading.Thread(target=other_fit)
+    thread.start()
+    try:
+        assert fit_in.wait(timeout=60)
+        assert _call(stage, *small_data) == "report"
+    finally:
+        search_started.set()
+        thread.join(timeout=60)
+    assert not errors, errors
+    assert seen == {"search after the other fit ended": [1] * len(before)}
+    assert blas_threads() == before
+
+
 def test_plant_with_wrong_sample_time(stage, small_data):
     plant = control.sample_system(stage.plant_continuous[0, 0], 1e-3)
     with pytest.raises(ValueError, match="sample time dt=0.001 s but the data"):

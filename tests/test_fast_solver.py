@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import simulate_resonant
+from conftest import blas_threads, simulate_resonant
 from scipy.signal import lfilter
 
 from lrmfrf import _compiled
@@ -544,12 +544,8 @@ def test_lane_group_tasks_partition_and_balance(threads):
 def test_single_threaded_blas_limits_and_restores():
     """The normal-equation paths run BLAS on one thread and give the threads
     back on exit; the threadpoolctl controller is made once per process."""
-    threadpoolctl = pytest.importorskip("threadpoolctl")
+    pytest.importorskip("threadpoolctl")
     from lrmfrf.local_models import _blas_controller, _single_threaded_blas
-
-    def blas_threads():
-        return [lib["num_threads"] for lib in threadpoolctl.threadpool_info()
-                if lib["user_api"] == "blas"]
 
     before = blas_threads()
     if not before:  # pragma: no cover
@@ -565,6 +561,154 @@ def test_single_threaded_blas_limits_and_restores():
         with _single_threaded_blas():
             raise RuntimeError("inside")
     assert blas_threads() == before
+
+
+
+def test_single_threaded_blas_overlapping_threads_restore(two_blas_threads):
+    """Two threads whose single-threaded sections overlap (A enters, B enters,
+    A leaves, B leaves: dask's or joblib's threads fitting at once) keep BLAS
+    on one thread while either is inside and give the original threads back
+    when the last one leaves, whichever thread limited first."""
+    import threading
+
+    from lrmfrf.local_models import _single_threaded_blas
+
+    before = two_blas_threads
+    a_in, b_in, a_out = threading.Event(), threading.Event(), threading.Event()
+    seen, errors = {}, []
+
+    def wait(event):
+        assert event.wait(timeout=30), "the other thread did not get there"
+
+    def thread_a():
+        try:
+            with _single_threaded_blas():
+                a_in.set()
+                wait(b_in)
+                seen["both inside"] = blas_threads()
+        except BaseException as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+        finally:
+            a_in.set()
+            a_out.set()
+
+    def thread_b():
+        try:
+            wait(a_in)
+            with _single_threaded_blas():
+                b_in.set()
+                wait(a_out)
+                seen["B inside after A left"] = blas_threads()
+        except BaseException as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+        finally:
+            b_in.set()
+
+    threads = [threading.Thread(target=thread_a), threading.Thread(target=thread_b)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=60)
+    assert not errors, errors
+    one = [1] * len(before)
+    assert seen == {"both inside": one, "B inside after A left": one}
+    assert blas_threads() == before
+
+
+def test_single_threaded_blas_nested_and_raising_restore(two_blas_threads):
+    """A section entered again inside itself (the discrepancy workflow wraps
+    fits that limit BLAS too) stays on one thread until the outer one ends,
+    and a block that raises gives the threads back."""
+    from lrmfrf.local_models import _single_threaded_blas
+
+    before = two_blas_threads
+    one = [1] * len(before)
+    with _single_threaded_blas():
+        with _single_threaded_blas():
+            assert blas_threads() == one
+        assert blas_threads() == one
+    assert blas_threads() == before
+    with pytest.raises(RuntimeError, match="inside"):
+        with _single_threaded_blas():
+            with _single_threaded_blas():
+                raise RuntimeError("inside")
+    assert blas_threads() == before
+
+
+
+def test_single_threaded_blas_many_threads_in_and_out(two_blas_threads):
+    """Four threads entering and leaving (and nesting) many times in no set
+    order: BLAS is on one thread whenever any of them is inside, and back to
+    the original counts at the end."""
+    import threading
+
+    from lrmfrf.local_models import _single_threaded_blas
+
+    before = two_blas_threads
+    one = [1] * len(before)
+    start = threading.Barrier(4, timeout=60)
+    wrong, errors = [], []
+
+    def worker(seed):
+        try:
+            rng = np.random.default_rng(seed)
+            start.wait()
+            for _ in range(15):
+                with _single_threaded_blas():
+                    if rng.random() < 0.5:
+                        with _single_threaded_blas():
+                            pass
+                    if blas_threads() != one:
+                        wrong.append(blas_threads())
+        except BaseException as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=worker, args=(seed,)) for seed in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=120)
+    assert not errors, errors
+    assert wrong == []
+    assert blas_threads() == before
+
+
+def test_single_threaded_blas_per_thread_libraries(two_blas_threads, monkeypatch):
+    """A library whose count belongs to each calling thread (OpenBLAS on
+    OpenMP) is limited and restored by the thread itself, nested or raising:
+    this machine's BLAS handled as one."""
+    from lrmfrf import _blas_threads
+
+    before = two_blas_threads
+    one = [1] * len(before)
+    blas = _blas_threads.blas_controller().select(user_api="blas")
+    monkeypatch.setattr(_blas_threads, "_blas_libraries",
+                        lambda: (blas.select(filepath=[]), blas))
+    with _blas_threads.single_threaded_blas():
+        with _blas_threads.single_threaded_blas():
+            assert blas_threads() == one
+        assert blas_threads() == one
+    assert blas_threads() == before
+    with pytest.raises(RuntimeError, match="inside"):
+        with _blas_threads.single_threaded_blas():
+            raise RuntimeError("inside")
+    assert blas_threads() == before
+
+
+def test_openblas_on_openmp_counts_per_thread():
+    """Which BLAS libraries count threads per calling thread."""
+    from types import SimpleNamespace
+
+    from lrmfrf._blas_threads import _count_per_thread
+
+    def lib(internal_api, threading_layer):
+        return SimpleNamespace(internal_api=internal_api,
+                               threading_layer=threading_layer)
+
+    assert _count_per_thread(lib("openblas", "openmp"))
+    assert not _count_per_thread(lib("openblas", "pthreads"))
+    assert not _count_per_thread(lib("mkl", "intel"))
+    assert not _count_per_thread(SimpleNamespace(internal_api="blis"))
 
 
 def _numba_fit_system(U, Y, layout):

@@ -62,6 +62,22 @@ def test_fit_many_with_worker_processes_matches_serial():
     _assert_same_fits(serial, processes)
 
 
+
+def test_fit_many_on_threads_gives_the_blas_threads_back(two_blas_threads):
+    """Fits on joblib's threading backend overlap their single-threaded BLAS
+    sections; afterwards BLAS runs on as many threads as before (it stayed on
+    one for the rest of the process when each fit restored what it found),
+    and the fits equal serial ones."""
+    from conftest import blas_threads
+
+    rng = np.random.default_rng(4)
+    u, y = _records(12, rng)
+    with joblib.parallel_config(backend="threading"):
+        threaded = fit_many(LRMBeyondNyquist(**SMALL), u, y, F, n_jobs=2)
+    assert blas_threads() == two_blas_threads
+    _assert_same_fits(threaded, fit_many(LRMBeyondNyquist(**SMALL), u, y, F))
+
+
 def test_fit_many_accepts_cv_estimators():
     rng = np.random.default_rng(3)
     u, y = _records(2, rng)

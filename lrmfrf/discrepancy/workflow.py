@@ -7,8 +7,8 @@ The public entry point only: the input checks and preparation are in
 from __future__ import annotations
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
+from .._blas_threads import single_threaded_blas
 from .._validation import check_bool, check_records, check_rng, renamed_keyword
 from ._inputs import MIN_BINS as MIN_BINS  # importable from here as before
 from ._inputs import (
@@ -190,7 +190,8 @@ def diagnose(
     band = check_band(band)
     fitted, template = fit_estimator(estimator, u, y, F, sample_time)
     problem, bins = comparison_problem(fitted, band, controller, sample_time)
-    with threadpool_limits(limits=1, user_api="blas"):
+    # the section the fits inside count themselves into (shared with other threads)
+    with single_threaded_blas():
         calibrator = Calibrator(template, fitted, u, F, sample_time, bins, controller,
                                 problem, settings.calibration_runs,
                                 settings.smoothing_bins, rng,
