@@ -673,6 +673,57 @@ def test_single_threaded_blas_many_threads_in_and_out(two_blas_threads):
     assert blas_threads() == before
 
 
+def _blas_in_a_forked_child(_):
+    """What a forked child's sections do with its BLAS (see the test below)."""
+    import threadpoolctl
+
+    from lrmfrf.local_models import _single_threaded_blas
+
+    seen = {"at the fork": blas_threads()}
+    threadpoolctl.threadpool_limits(limits=2, user_api="blas")  # the child's own
+    clear = getattr(threadpoolctl.OpenBLASController, "clear_controlling_thread",
+                    lambda: None)
+    clear()
+    with _single_threaded_blas():
+        seen["inside"] = blas_threads()
+    seen["after"] = blas_threads()
+    return seen
+
+
+def test_single_threaded_blas_in_a_child_forked_during_a_section(two_blas_threads):
+    """A child forked while another thread is inside a section: that thread's
+    section is not counted in the child (where it never ends), so the child's
+    own sections limit BLAS and give back the child's counts. It was counted:
+    once the child set two threads, its fits ran BLAS on two."""
+    import multiprocessing
+    import threading
+
+    from lrmfrf.local_models import _single_threaded_blas
+
+    if "fork" not in multiprocessing.get_all_start_methods():  # pragma: no cover
+        pytest.skip("no fork start method on this platform")
+    before = two_blas_threads
+    one = [1] * len(before)
+    inside, leave = threading.Event(), threading.Event()
+
+    def other_fit():
+        with _single_threaded_blas():
+            inside.set()
+            leave.wait(timeout=120)
+
+    thread = threading.Thread(target=other_fit)
+    thread.start()
+    try:
+        assert inside.wait(timeout=60)
+        with multiprocessing.get_context("fork").Pool(1) as pool:
+            seen = pool.apply_async(_blas_in_a_forked_child, (0,)).get(timeout=120)
+    finally:
+        leave.set()
+        thread.join(timeout=60)
+    assert seen == {"at the fork": one, "inside": one, "after": [2] * len(before)}
+    assert blas_threads() == before
+
+
 def test_single_threaded_blas_per_thread_libraries(two_blas_threads, monkeypatch):
     """A library whose count belongs to each calling thread (OpenBLAS on
     OpenMP) is limited and restored by the thread itself, nested or raising:
