@@ -826,6 +826,25 @@ def test_one_kernel_pool_per_thread_count_asked_for(monkeypatch):
             pool.shutdown(wait=True)
 
 
+def test_empty_windows_cache_counts_its_matrices():
+    """The cache of data-free windows counts the ``to_layout`` matrix the
+    kernel tables take from it (0.28 MB for a 4x4, P = 4, F = 8 layout; it was
+    made after the entry was counted, which counted 1.5 kB)."""
+    from lrmfrf import solvers
+
+    layout = LocalModelLayout(F=8, n_experiments=4, n_inputs=4, half_window=18,
+                              num_degree=4, transient_degree=4, den_degree=7)
+    solvers._empty_windows.cache_clear()
+    solvers._kernel_tables.cache_clear()
+    empty = solvers._empty_windows(layout)
+    matrix = solvers._kernel_tables(layout)[3]
+    assert matrix.shape == (layout.n_params, layout.n_params)
+    counted = solvers._empty_windows.cache_info()["bytes"]
+    assert counted >= layout.n_params**2 * 8 + empty.order.nbytes
+    solvers._empty_windows.cache_clear()
+    solvers._kernel_tables.cache_clear()
+
+
 def test_layout_table_caches_keep_to_their_byte_bound(monkeypatch):
     """The per-layout table caches drop the least recently used layouts once
     their arrays pass ``TABLE_CACHE_BYTES``: with a 1 MB bound, twelve 2x2
