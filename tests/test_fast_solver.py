@@ -541,17 +541,14 @@ def test_lane_group_tasks_partition_and_balance(threads):
         assert max(busy) - min(busy) <= 1, (n_groups, sizes, busy)
 
 
-def test_single_threaded_blas_limits_and_restores():
+def test_single_threaded_blas_limits_and_restores(two_blas_threads):
     """The normal-equation paths run BLAS on one thread and give the threads
-    back on exit; the threadpoolctl controller is made once per process."""
-    pytest.importorskip("threadpoolctl")
+    back on exit; the threadpoolctl controller is made once per process.
+    (BLAS set to two threads first: where it runs on one, as with
+    ``OPENBLAS_NUM_THREADS=1``, the test skipped.)"""
     from lrmfrf.local_models import _blas_controller, _single_threaded_blas
 
-    before = blas_threads()
-    if not before:  # pragma: no cover
-        pytest.skip("no BLAS library found by threadpoolctl")
-    if before == [1] * len(before):  # pragma: no cover
-        pytest.skip("BLAS runs on one thread already: a limit cannot be seen")
+    before = two_blas_threads
     with _single_threaded_blas():
         assert blas_threads() == [1] * len(before)
     assert blas_threads() == before
