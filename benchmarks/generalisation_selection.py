@@ -618,14 +618,16 @@ def cluster_mimo_stage(seed: int):
     """The four-corner plate (:func:`lrmfrf.plants.mimo_wafer_stage`, F = 3,
     Ts = 0.5 ms, closed loop) with the rigid body and three flexible modes that
     alias onto about the same slow frequency, drawn as in
-    :func:`cluster_stage` (270-290 Hz and near ``f_slow -+ f``; damping
-    0.5-2 %); each mode's shape at the four corners and the point of interest
-    is random (0.2-0.8 in magnitude, random signs)."""
+    :func:`cluster_stage` (265-290 Hz and near ``f_slow -+ f``; damping
+    0.5-2 %); each mode's shape is random, at the four corners 0.2-0.8 and at
+    the point of interest 0.5-2 in magnitude, with random signs. Redrawn
+    until the closed loop is stable (:func:`mimo_wafer_stage` does not check
+    it; every seed tried, 1-8, 11-18 and 100-159, is on its first draw)."""
     from lrmfrf.plants import PlateMode
 
     rng = np.random.default_rng(seed)
     slow_rate = 1.0 / (3 * 0.5e-3)
-    for _ in range(100):  # redraw until every decoupled loop is stable
+    for _ in range(100):  # redraw until the closed loop is stable
         base = rng.uniform(265.0, 290.0)
         freqs = [base, (slow_rate - base) * rng.uniform(1.005, 1.03),
                  (slow_rate + base) * rng.uniform(0.97, 0.995)]
@@ -638,7 +640,8 @@ def cluster_mimo_stage(seed: int):
             stage = mimo_wafer_stage(modes=modes, downsampling_factor=3)
         except ValueError:
             continue
-        return stage, freqs
+        if np.max(np.abs(np.linalg.eigvals(stage.G.A))) < 1.0:
+            return stage, freqs
     raise RuntimeError(  # pragma: no cover
         f"no stable 2x2 cluster stage for seed {seed}")
 

@@ -22,6 +22,12 @@ limited, so each limit and restore here gives up the claim it took.
 OpenBLAS on its OpenMP layer keeps a count per calling thread: such libraries
 are limited and restored by each thread for itself, as threadpoolctl's own
 contexts do.
+
+A process forked while other threads are inside keeps only the forking
+thread's sections: the others' threads do not exist in the child and would
+never leave (its sections would only count, and BLAS would stay on the one
+thread or on whatever count the child sets). The child keeps the counts it
+inherits (one thread if a section was open) and limits and restores afresh.
 """
 
 from __future__ import annotations
@@ -33,12 +39,26 @@ import threading
 __all__ = ["blas_controller", "single_threaded_blas"]
 
 _lock = threading.Lock()
-_open_sections = 0  # sections inside, over all threads
+_open_sections: dict = {}  # the sections inside (a token each) -> entering thread
 _shared_limiter = None  # the first section's limiter: holds the original counts
+
+
+def _after_fork_in_child():
+    """Drop the sections of the threads a forked child does not have."""
+    global _shared_limiter
+    try:
+        me = threading.get_ident()
+        for token in [t for t, ident in _open_sections.items() if ident != me]:
+            del _open_sections[token]
+        if not _open_sections:
+            _shared_limiter = None  # BLAS keeps the counts it has at the fork
+    finally:
+        _lock.release()
+
 
 if hasattr(os, "register_at_fork"):  # a fork never copies the lock while held
     os.register_at_fork(before=_lock.acquire, after_in_parent=_lock.release,
-                        after_in_child=_lock.release)
+                        after_in_child=_after_fork_in_child)
 
 
 def single_threaded_blas():
@@ -65,18 +85,18 @@ def single_threaded_blas():
 class _SingleThreadedBlas:
     """The context of :func:`single_threaded_blas` (one per ``with``)."""
 
-    __slots__ = ("_own_limiter",)
+    __slots__ = ("_own_limiter", "_token")
 
     def __enter__(self):
         shared, per_thread = _blas_libraries()
-        _enter_shared(shared)
+        self._token = _enter_shared(shared)
         try:
             self._own_limiter = (
                 per_thread.limit(limits=1, user_api="blas")
                 if per_thread.lib_controllers else None
             )
         except BaseException:
-            _leave_shared()
+            _leave_shared(self._token)
             raise
         return self
 
@@ -85,7 +105,7 @@ class _SingleThreadedBlas:
             if self._own_limiter is not None:
                 self._own_limiter.restore_original_limits()
         finally:
-            _leave_shared()
+            _leave_shared(self._token)
         return False
 
 
@@ -121,19 +141,25 @@ def _count_per_thread(lib_controller):
 
 
 def _enter_shared(shared):
-    global _open_sections, _shared_limiter
+    """Count a section in (limiting BLAS if it is the first); returns its token."""
+    global _shared_limiter
+    token = object()
     with _lock:
-        if _open_sections == 0 and shared.lib_controllers:
+        if not _open_sections and shared.lib_controllers:
             _shared_limiter = shared.limit(limits=1, user_api="blas")
             _give_up_openblas_claim()
-        _open_sections += 1
+        _open_sections[token] = threading.get_ident()
+    return token
 
 
-def _leave_shared():
-    global _open_sections, _shared_limiter
+def _leave_shared(token):
+    """Count a section out (restoring BLAS if it is the last); a section a
+    forked child dropped (entered by a thread it does not have) counts nothing."""
+    global _shared_limiter
     with _lock:
-        _open_sections -= 1
-        if _open_sections == 0 and _shared_limiter is not None:
+        if _open_sections.pop(token, None) is None:
+            return
+        if not _open_sections and _shared_limiter is not None:
             limiter, _shared_limiter = _shared_limiter, None
             try:
                 limiter.restore_original_limits()

@@ -534,7 +534,8 @@ TABLE_CACHE_BYTES = 2**26
 
 def _nbytes(value) -> int:
     """Bytes of the numpy arrays in ``value`` (tuples, lists, dicts and object
-    attributes, one level of objects deep)."""
+    attributes, one level of objects deep: an attribute's arrays, tuples, lists
+    and dicts are counted, its objects are not)."""
     if isinstance(value, np.ndarray):
         return value.nbytes
     if isinstance(value, (tuple, list)):
@@ -542,8 +543,8 @@ def _nbytes(value) -> int:
     if isinstance(value, dict):
         return sum(_nbytes(v) for v in value.values())
     if hasattr(value, "__dict__") and not isinstance(value, type):
-        return sum(v.nbytes for v in vars(value).values()
-                   if isinstance(v, np.ndarray))
+        return sum(_nbytes(v) for v in vars(value).values()
+                   if isinstance(v, (np.ndarray, tuple, list, dict)))
     return 0
 
 
@@ -628,12 +629,16 @@ def _kernel_weighted_tables(layout: LocalModelLayout) -> dict:
 @_layout_cache
 def _empty_windows(layout: LocalModelLayout) -> StructuredWindows:
     """A :class:`~lrmfrf.windows.StructuredWindows` without data: its column
-    order, weights and ``to_layout`` matrix depend on the layout only."""
+    order, weights and ``to_layout`` matrix depend on the layout only. The
+    matrix (``n_params**2`` floats, a cached property) is made here, so that
+    the cache counts its bytes."""
     P = layout.n_experiments
-    return StructuredWindows(
+    empty = StructuredWindows(
         np.zeros((P, layout.n_bands)), np.zeros((P, 1)), np.zeros(0, dtype=int),
         layout,
     )
+    empty.to_layout_matrix  # noqa: B018 - computed before the cache counts it
+    return empty
 
 
 def _batched_cholesky(gram: np.ndarray) -> np.ndarray:

@@ -77,12 +77,15 @@ def blas_threads():
 @pytest.fixture
 def two_blas_threads():
     """BLAS on (at least) two threads for the test, so that a limit to one can
-    be seen; the process's settings are put back afterwards. Nothing is left
-    holding OpenBLAS's controlling thread (threadpoolctl >= 3.8), which would
-    silently ignore the limits set from the test's worker threads."""
+    be seen; the process's settings are put back afterwards. The test's thread
+    holds OpenBLAS's controlling thread (threadpoolctl >= 3.8) neither before
+    nor after the test: it would silently ignore the limits set from worker
+    threads (a test that limits BLAS itself, as the per-thread one does through
+    threadpoolctl, took it and kept it for the tests after it)."""
     threadpoolctl = pytest.importorskip("threadpoolctl")
     clear = getattr(threadpoolctl.OpenBLASController, "clear_controlling_thread",
                     lambda: None)
+    clear()
     if not blas_threads():  # pragma: no cover
         pytest.skip("no BLAS library found by threadpoolctl")
     forced = None
@@ -97,5 +100,4 @@ def two_blas_threads():
     finally:
         if forced is not None:
             forced.restore_original_limits()
-            clear()
-
+        clear()

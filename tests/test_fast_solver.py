@@ -541,17 +541,14 @@ def test_lane_group_tasks_partition_and_balance(threads):
         assert max(busy) - min(busy) <= 1, (n_groups, sizes, busy)
 
 
-def test_single_threaded_blas_limits_and_restores():
+def test_single_threaded_blas_limits_and_restores(two_blas_threads):
     """The normal-equation paths run BLAS on one thread and give the threads
-    back on exit; the threadpoolctl controller is made once per process."""
-    pytest.importorskip("threadpoolctl")
+    back on exit; the threadpoolctl controller is made once per process.
+    (BLAS set to two threads first: where it runs on one, as with
+    ``OPENBLAS_NUM_THREADS=1``, the test skipped.)"""
     from lrmfrf.local_models import _blas_controller, _single_threaded_blas
 
-    before = blas_threads()
-    if not before:  # pragma: no cover
-        pytest.skip("no BLAS library found by threadpoolctl")
-    if before == [1] * len(before):  # pragma: no cover
-        pytest.skip("BLAS runs on one thread already: a limit cannot be seen")
+    before = two_blas_threads
     with _single_threaded_blas():
         assert blas_threads() == [1] * len(before)
     assert blas_threads() == before
@@ -673,6 +670,57 @@ def test_single_threaded_blas_many_threads_in_and_out(two_blas_threads):
     assert blas_threads() == before
 
 
+def _blas_in_a_forked_child(_):
+    """What a forked child's sections do with its BLAS (see the test below)."""
+    import threadpoolctl
+
+    from lrmfrf.local_models import _single_threaded_blas
+
+    seen = {"at the fork": blas_threads()}
+    threadpoolctl.threadpool_limits(limits=2, user_api="blas")  # the child's own
+    clear = getattr(threadpoolctl.OpenBLASController, "clear_controlling_thread",
+                    lambda: None)
+    clear()
+    with _single_threaded_blas():
+        seen["inside"] = blas_threads()
+    seen["after"] = blas_threads()
+    return seen
+
+
+def test_single_threaded_blas_in_a_child_forked_during_a_section(two_blas_threads):
+    """A child forked while another thread is inside a section: that thread's
+    section is not counted in the child (where it never ends), so the child's
+    own sections limit BLAS and give back the child's counts. It was counted:
+    once the child set two threads, its fits ran BLAS on two."""
+    import multiprocessing
+    import threading
+
+    from lrmfrf.local_models import _single_threaded_blas
+
+    if "fork" not in multiprocessing.get_all_start_methods():  # pragma: no cover
+        pytest.skip("no fork start method on this platform")
+    before = two_blas_threads
+    one = [1] * len(before)
+    inside, leave = threading.Event(), threading.Event()
+
+    def other_fit():
+        with _single_threaded_blas():
+            inside.set()
+            leave.wait(timeout=120)
+
+    thread = threading.Thread(target=other_fit)
+    thread.start()
+    try:
+        assert inside.wait(timeout=60)
+        with multiprocessing.get_context("fork").Pool(1) as pool:
+            seen = pool.apply_async(_blas_in_a_forked_child, (0,)).get(timeout=120)
+    finally:
+        leave.set()
+        thread.join(timeout=60)
+    assert seen == {"at the fork": one, "inside": one, "after": [2] * len(before)}
+    assert blas_threads() == before
+
+
 def test_single_threaded_blas_per_thread_libraries(two_blas_threads, monkeypatch):
     """A library whose count belongs to each calling thread (OpenBLAS on
     OpenMP) is limited and restored by the thread itself, nested or raising:
@@ -773,6 +821,25 @@ def test_one_kernel_pool_per_thread_count_asked_for(monkeypatch):
     finally:
         for pool in _compiled._POOLS.values():
             pool.shutdown(wait=True)
+
+
+def test_empty_windows_cache_counts_its_matrices():
+    """The cache of data-free windows counts the ``to_layout`` matrix the
+    kernel tables take from it (0.28 MB for a 4x4, P = 4, F = 8 layout; it was
+    made after the entry was counted, which counted 1.5 kB)."""
+    from lrmfrf import solvers
+
+    layout = LocalModelLayout(F=8, n_experiments=4, n_inputs=4, half_window=18,
+                              num_degree=4, transient_degree=4, den_degree=7)
+    solvers._empty_windows.cache_clear()
+    solvers._kernel_tables.cache_clear()
+    empty = solvers._empty_windows(layout)
+    matrix = solvers._kernel_tables(layout)[3]
+    assert matrix.shape == (layout.n_params, layout.n_params)
+    counted = solvers._empty_windows.cache_info()["bytes"]
+    assert counted >= layout.n_params**2 * 8 + empty.order.nbytes
+    solvers._empty_windows.cache_clear()
+    solvers._kernel_tables.cache_clear()
 
 
 def test_layout_table_caches_keep_to_their_byte_bound(monkeypatch):

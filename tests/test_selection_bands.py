@@ -287,3 +287,42 @@ def test_per_bin_choice_on_held_out_cluster_stages():
     ratio, rigid, cluster = _cluster_records(range(11, 19))
     assert ratio.mean() <= 0.9, ratio
     assert np.median(rigid) <= 1.0 and np.median(cluster) <= 1.0, (rigid, cluster)
+
+
+def test_cluster_mimo_stage_redraws_an_unstable_closed_loop(monkeypatch):
+    """The 2x2 cluster stages of ``--per-band --mimo`` are redrawn until the
+    closed loop is stable: :func:`mimo_wafer_stage` does not check it (only
+    bad parameters raise), so a draw whose loop is unstable was used as it
+    came. Here the first draw is made unstable (a pole at 1.01): the stage
+    returned is the second draw, stable."""
+    import sys
+    from dataclasses import replace
+    from pathlib import Path
+
+    import control
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import generalisation_selection as bench
+
+    def spectral_radius(stage):
+        return np.max(np.abs(np.linalg.eigvals(stage.G.A)))
+
+    stage, _ = bench.cluster_mimo_stage(1)
+    assert spectral_radius(stage) < 1.0
+    real, made = bench.mimo_wafer_stage, []
+
+    def first_unstable(**kwargs):
+        stage = real(**kwargs)
+        if not made:
+            G = stage.G
+            A = G.A.copy()
+            A[0, :] = 0.0
+            A[0, 0] = 1.01
+            stage = replace(stage, G=control.ss(A, G.B, G.C, G.D, G.dt))
+        made.append(stage)
+        return stage
+
+    monkeypatch.setattr(bench, "mimo_wafer_stage", first_unstable)
+    stage, _ = bench.cluster_mimo_stage(1)
+    assert len(made) == 2 and spectral_radius(made[0]) > 1.0
+    assert stage is made[1] and spectral_radius(stage) < 1.0
