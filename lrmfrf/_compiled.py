@@ -65,9 +65,15 @@ __all__ = ["AVAILABLE", "LANES", "moment_tables", "solve_windows"]
 #: Windows solved together in SIMD lanes. Loops over 32 lanes or fewer are
 #: fully unrolled by LLVM and then not vectorised (it cannot prove that the
 #: scratch rows do not alias); longer ones vectorise behind runtime alias
-#: checks, whose cost per loop favours long loops: 6.6, 5.8, 5.7 and 5.7 us per
-#: window (paper degrees, one thread) with 48, 64, 96 and 128 lanes.
-LANES = 96
+#: checks, whose cost per loop favours long loops, while the scratch (one
+#: cache line per 8 lanes and matrix entry) favours short ones once the
+#: errors-in-variables terms and MIMO layouts make it MBs. Measured with the
+#: default degrees, F = 3, one thread, on the N = 1.2e5 records of
+#: ``benchmarks/speed.py`` (closed form with the eiv terms, per window; solve
+#: alone in brackets): 15.3 (7.0), 12.8-13.4 (6.0), 14.6-15.5 (6.7-7.1) and
+#: 14.0-14.9 (6.6) us with 48, 64, 96 and 128 lanes; the 2x2 record's fit
+#: is fastest at 64 lanes too.
+LANES = 64
 
 #: Lane groups a thread takes at a time from the shared queue (at most).
 _GROUPS_PER_TASK = 8

@@ -355,25 +355,34 @@ def _inverse_rows_py(Hr, Hi, lo, hi, Kr, Ki, acc_r, acc_i):
     """Rows ``lo..hi-1`` of ``K = L^-1`` (``L`` packed lower, inverse pivots
     in ``Hi`` at the diagonal; ``K`` packed lower), rows ``0..lo-1`` of ``K``
     given: ``K_ii = 1 / L_ii``, ``K_ic = -(sum_{m=c}^{i-1} L_im K_mc) /
-    L_ii`` (the sums of :func:`lrmfrf._compiled._tail_inverse`, in the same
-    order)."""
+    L_ii``.
+
+    Row ``i`` is accumulated in place as ``sum_m L_im K[m, :m+1]``: each step
+    streams one row of ``K`` (contiguous when packed) into row ``i`` (a few
+    kB, cache-resident), where a sum per entry would read a column of ``K``,
+    one far cache line per term (the MIMO blocks, n_s = 40, are MBs over the
+    lanes). ``acc_r``/``acc_i`` are unused (kept for the callers' scratch)."""
     for i in range(lo, hi):
         ri = i * (i + 1) // 2
         inv = ri + i
         for c in range(i):
             for w in range(LANES):
-                acc_r[w] = 0.0
-                acc_i[w] = 0.0
-            for m in range(c, i):
-                mc = m * (m + 1) // 2 + c
+                Kr[ri + c, w] = 0.0
+                Ki[ri + c, w] = 0.0
+        for m in range(i):
+            rm = m * (m + 1) // 2
+            for c in range(m + 1):
                 for w in range(LANES):
                     lr = Hr[ri + m, w]
                     li = Hi[ri + m, w]
-                    acc_r[w] += lr * Kr[mc, w] - li * Ki[mc, w]
-                    acc_i[w] += lr * Ki[mc, w] + li * Kr[mc, w]
+                    kr = Kr[rm + c, w]
+                    ki = Ki[rm + c, w]
+                    Kr[ri + c, w] += lr * kr - li * ki
+                    Ki[ri + c, w] += lr * ki + li * kr
+        for c in range(i):
             for w in range(LANES):
-                Kr[ri + c, w] = -acc_r[w] * Hi[inv, w]
-                Ki[ri + c, w] = -acc_i[w] * Hi[inv, w]
+                Kr[ri + c, w] *= -Hi[inv, w]
+                Ki[ri + c, w] *= -Hi[inv, w]
         for w in range(LANES):
             Kr[inv, w] = Hi[inv, w]
             Ki[inv, w] = 0.0
@@ -382,24 +391,27 @@ def _inverse_rows_py(Hr, Hi, lo, hi, Kr, Ki, acc_r, acc_i):
 def _lower_gram_rows_py(Kr, Ki, lo, hi, n, Cr, Ci, acc_r, acc_i):
     """Lower triangle (packed) of ``sum_{i=lo}^{hi-1} conj(K[i, :n])^T
     K[i, :n]`` (``K`` lower triangular, packed: the sum for ``C[c, d]``,
-    ``c >= d``, starts at ``i = max(lo, c)``)."""
+    ``c >= d``, starts at ``i = max(lo, c)``).
+
+    Row ``c`` of ``C`` is accumulated in place from the rows ``K[i, :c+1]``
+    (contiguous), as in :func:`_inverse_rows`; ``acc_r``/``acc_i`` unused."""
     for c in range(n):
+        rc = c * (c + 1) // 2
         for d in range(c + 1):
             for w in range(LANES):
-                acc_r[w] = 0.0
-                acc_i[w] = 0.0
-            for i in range(max(lo, c), hi):
-                ri = i * (i + 1) // 2
+                Cr[rc + d, w] = 0.0
+                Ci[rc + d, w] = 0.0
+        for i in range(max(lo, c), hi):
+            ri = i * (i + 1) // 2
+            for d in range(c + 1):
                 for w in range(LANES):
                     # conj(K[i,c]) K[i,d]
                     kcr = Kr[ri + c, w]
                     kci = Ki[ri + c, w]
-                    acc_r[w] += kcr * Kr[ri + d, w] + kci * Ki[ri + d, w]
-                    acc_i[w] += kcr * Ki[ri + d, w] - kci * Kr[ri + d, w]
-            e = c * (c + 1) // 2 + d
-            for w in range(LANES):
-                Cr[e, w] = acc_r[w]
-                Ci[e, w] = acc_i[w]
+                    kdr = Kr[ri + d, w]
+                    kdi = Ki[ri + d, w]
+                    Cr[rc + d, w] += kcr * kdr + kci * kdi
+                    Ci[rc + d, w] += kcr * kdi - kci * kdr
 
 
 def _trace_of_product_py(Cr, Ci, Wr, Wi, p, acc_r):
