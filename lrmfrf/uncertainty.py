@@ -753,7 +753,7 @@ def _eiv_terms_compiled(U, Y, layout, theta, slow_bins, raws=None):
     negative = np.any(np.real(np.diagonal(lead, axis1=-2, axis2=-1)) < 0, axis=-1)
     redo = good & (~ok | negative)
     chunk = qr_chunk_size(layout)
-    # (threadpoolctl inspects the loaded libraries on entry: only when needed)
+    # (the section reads and sets the BLAS thread counts: only when needed)
     with _single_threaded_blas() if redo.any() else contextlib.nullcontext():
         for o, windows in enumerate(redo):
             windows = np.flatnonzero(windows)
