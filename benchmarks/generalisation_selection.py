@@ -530,9 +530,7 @@ def cluster_stage(seed: int, loop: str = "closed"):
     rng = np.random.default_rng(seed)
     slow_rate = 1.0 / (3 * 0.5e-3)
     for _ in range(100):  # redraw until the lead-PID loop is stable
-        base = rng.uniform(265.0, 290.0)
-        freqs = [base, (slow_rate - base) * rng.uniform(1.005, 1.03),
-                 (slow_rate + base) * rng.uniform(0.97, 0.995)]
+        freqs = _cluster_frequencies(rng, slow_rate)
         modes = [Mode(float(f), float(rng.uniform(0.005, 0.02)),
                       float(rng.uniform(0.03, 0.15)),
                       float(rng.choice([-1, 1]) * rng.uniform(0.3, 1.2)))
@@ -628,9 +626,7 @@ def cluster_mimo_stage(seed: int):
     rng = np.random.default_rng(seed)
     slow_rate = 1.0 / (3 * 0.5e-3)
     for _ in range(100):  # redraw until the closed loop is stable
-        base = rng.uniform(265.0, 290.0)
-        freqs = [base, (slow_rate - base) * rng.uniform(1.005, 1.03),
-                 (slow_rate + base) * rng.uniform(0.97, 0.995)]
+        freqs = _cluster_frequencies(rng, slow_rate)
         modes = [PlateMode(float(f), float(rng.uniform(0.005, 0.02)),
                            tuple(float(v) for v in rng.choice([-1, 1], 4)
                                  * rng.uniform(0.2, 0.8, 4)),
@@ -646,6 +642,30 @@ def cluster_mimo_stage(seed: int):
         f"no stable 2x2 cluster stage for seed {seed}")
 
 
+def _cluster_frequencies(rng, slow_rate: float) -> list:
+    """Three mode frequencies that alias onto about one slow frequency at
+    F = 3: ``f`` in 265-290 Hz and just above ``f_slow - f`` / just below
+    ``f_slow + f`` (shared by the SISO and 2x2 cluster stages)."""
+    base = rng.uniform(265.0, 290.0)
+    return [base, (slow_rate - base) * rng.uniform(1.005, 1.03),
+            (slow_rate + base) * rng.uniform(0.97, 0.995)]
+
+
+def cluster_mimo_record(seed: int, snr_db: float = 40.0):
+    """The 2x2 record of :func:`per_band_mimo_record`: ``G[0:2, 0:2]`` of
+    :func:`cluster_mimo_stage`, two orthogonal multisine experiments of
+    ``N = 1200`` (F = 3), ``snr_db`` on each output. Returns ``(stage, freqs,
+    system, u, y)``."""
+    stage, freqs = cluster_mimo_stage(seed)
+    system = stage.G[0:2, 0:2]
+    F, N = 3, 3 * SLOW_SAMPLES
+    rng = np.random.default_rng(20_000 + seed)
+    u = orthogonal_multisines(2, N, rng=rng)
+    y = np.stack([simulate(system, u[p], F, snr_db=snr_db, rng=rng).y_l
+                  for p in range(2)])
+    return stage, freqs, system, u, y
+
+
 def per_band_mimo_record(seed: int, bands=None, snr_db: float = 40.0) -> dict:
     """:func:`per_band_record` on the 2x2 block ``G[0:2, 0:2]`` of
     :func:`cluster_mimo_stage`: two orthogonal multisine experiments of
@@ -657,13 +677,8 @@ def per_band_mimo_record(seed: int, bands=None, snr_db: float = 40.0) -> dict:
 
     from lrmfrf import LRMBeyondNyquist
 
-    stage, freqs = cluster_mimo_stage(seed)
-    system = stage.G[0:2, 0:2]
-    F, N = 3, 3 * SLOW_SAMPLES
-    rng = np.random.default_rng(20_000 + seed)
-    u = orthogonal_multisines(2, N, rng=rng)
-    y = np.stack([simulate(system, u[p], F, snr_db=snr_db, rng=rng).y_l
-                  for p in range(2)])
+    stage, freqs, system, u, y = cluster_mimo_record(seed, snr_db)
+    F, N = 3, u.shape[-1]
     G = true_frf(system, N)  # (2, 2, N//2 + 1)
     f = np.arange(N // 2 + 1) / (N * stage.sample_time)
     size = np.sqrt(np.sum(np.abs(G) ** 2, axis=(0, 1)))  # ||G(k)||_F

@@ -11,7 +11,7 @@ with low degrees (e.g. (36, 2, 2, x)), whose std is small and whose bias is
 not in it, over the (18-24, 5-6, 5-6, 7-8) settings that separate the modes.
 
 This script fits every identifiable candidate once per record (the same
-records, seeded as in ``per_band_mimo_record``) and re-scores the blend
+records: ``generalisation_selection.cluster_mimo_record``) and re-scores the blend
 offline with variants of the score:
 
 - ``matrix``: the library's score (checked: it reproduces the CV's ``frf_``
@@ -48,20 +48,13 @@ import generalisation_selection as gs  # noqa: E402
 
 from lrmfrf import LRMBeyondNyquist, LRMBeyondNyquistCV  # noqa: E402
 from lrmfrf.estimators import _bands  # noqa: E402
-from lrmfrf.signals import orthogonal_multisines  # noqa: E402
-from lrmfrf.simulate import simulate  # noqa: E402
 
 
 def fit_record(seed: int, snr_db: float = 40.0) -> dict:
     """Every identifiable candidate of the default grid on the 2x2 record of
     ``seed`` (as :func:`generalisation_selection.per_band_mimo_record`)."""
-    stage, freqs = gs.cluster_mimo_stage(seed)
-    system = stage.G[0:2, 0:2]
-    F, N = 3, 3 * gs.SLOW_SAMPLES
-    rng = np.random.default_rng(20_000 + seed)
-    u = orthogonal_multisines(2, N, rng=rng)
-    y = np.stack([simulate(system, u[p], F, snr_db=snr_db, rng=rng).y_l
-                  for p in range(2)])
+    stage, freqs, system, u, y = gs.cluster_mimo_record(seed, snr_db)
+    F, N = 3, u.shape[-1]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         cv = LRMBeyondNyquistCV(per_band=True).fit(u, y, F)
