@@ -146,8 +146,16 @@ def _enter_shared(shared):
     token = object()
     with _lock:
         if not _open_sections and shared.lib_controllers:
-            _shared_limiter = shared.limit(limits=1, user_api="blas")
-            _give_up_openblas_claim()
+            limiter = shared.limit(limits=1, user_api="blas")
+            try:
+                _give_up_openblas_claim()
+            except BaseException:
+                # no section is counted in: put the counts back now, or BLAS
+                # would stay on one thread and the next section would keep
+                # that one thread as the "original" count
+                limiter.restore_original_limits()
+                raise
+            _shared_limiter = limiter
         _open_sections[token] = threading.get_ident()
     return token
 

@@ -868,3 +868,37 @@ def test_layout_table_caches_keep_to_their_byte_bound(monkeypatch):
     for a, b in zip(first[:2], again[:2], strict=True):
         np.testing.assert_array_equal(a, b)
     solvers._kernel_tables.cache_clear()
+
+
+def test_single_threaded_blas_failing_entry_gives_the_threads_back(
+    two_blas_threads, monkeypatch
+):
+    """An exception between limiting BLAS and counting the section in (here
+    from giving up threadpoolctl's OpenBLAS claim) leaves no section behind:
+    BLAS is back on its threads at once, and the next section limits and
+    restores to those threads, not to the one thread the failed entry left
+    (before: ``[1, ...]`` after the failure and after the next section)."""
+    from lrmfrf import _blas_threads
+    from lrmfrf.local_models import _single_threaded_blas
+
+    before = two_blas_threads
+    real = _blas_threads._give_up_openblas_claim
+    calls = []
+
+    def fail_once():
+        calls.append(None)
+        if len(calls) == 1:
+            raise KeyboardInterrupt("between limit and count")
+        real()
+
+    monkeypatch.setattr(_blas_threads, "_give_up_openblas_claim", fail_once)
+    with pytest.raises(KeyboardInterrupt, match="between limit and count"):
+        with _single_threaded_blas():
+            pass  # pragma: no cover - the entry raises
+    assert calls, "the entry did not reach the claim"
+    real()  # the test thread may hold the claim taken by the failed limit
+    assert blas_threads() == before
+    assert not _blas_threads._open_sections
+    with _single_threaded_blas():
+        assert blas_threads() == [1] * len(before)
+    assert blas_threads() == before
