@@ -619,8 +619,10 @@ def cluster_mimo_stage(seed: int):
     :func:`cluster_stage` (265-290 Hz and near ``f_slow -+ f``; damping
     0.5-2 %); each mode's shape is random, at the four corners 0.2-0.8 and at
     the point of interest 0.5-2 in magnitude, with random signs. Redrawn
-    until the closed loop is stable (:func:`mimo_wafer_stage` does not check
-    it; every seed tried, 1-8, 11-18 and 100-159, is on its first draw)."""
+    until the closed loop is stable: :func:`mimo_wafer_stage` raises
+    ``ValueError`` for a draw whose controller does not stabilise it (seeds
+    18, 100, 112, 144 and 145 of 1-8, 11-18 and 100-159 on their first draw,
+    poles at 1.0004-1.004)."""
     from lrmfrf.plants import PlateMode
 
     rng = np.random.default_rng(seed)
@@ -633,11 +635,9 @@ def cluster_mimo_stage(seed: int):
                            float(rng.choice([-1, 1]) * rng.uniform(0.5, 2.0)))
                  for f in freqs]
         try:
-            stage = mimo_wafer_stage(modes=modes, downsampling_factor=3)
-        except ValueError:
+            return mimo_wafer_stage(modes=modes, downsampling_factor=3), freqs
+        except ValueError:  # an unstable closed loop (or bad parameters)
             continue
-        if np.max(np.abs(np.linalg.eigvals(stage.G.A))) < 1.0:
-            return stage, freqs
     raise RuntimeError(  # pragma: no cover
         f"no stable 2x2 cluster stage for seed {seed}")
 

@@ -101,7 +101,7 @@ def _eiv_range_py(
     ok = np.empty(LANES, np.bool_)
     k = np.empty(LANES, np.int64)
     (mwr, mwi, Wr, Wi, Kr, Ki, Sh_r, Sh_i, Cr, Ci, cbr, cbi, ybr, ybi, qr, qi,
-     acc_r, acc_i, wt) = _row_scratch(p, n_shared, n_bands, L, w_n_moments)
+     acc_r, wt) = _row_scratch(p, n_shared, n_bands, L, w_n_moments)
     B = bins.shape[0]
     shared_entries = n_shared * (n_shared + 1) // 2
     n_g_pairs = g_kind.shape[0]
@@ -122,9 +122,8 @@ def _eiv_range_py(
         for w in range(LANES):
             ok_shared[w] = True
         _compiled._cholesky_rows(Hr, Hi, scale2, ok_shared, tol2, 0, n_shared)
-        _inverse_rows(Hr, Hi, 0, n_shared, Kr, Ki, acc_r, acc_i)
-        _lower_gram_rows(Kr, Ki, 0, n_shared, n_shared, Sh_r, Sh_i, acc_r,
-                         acc_i)
+        _inverse_rows(Hr, Hi, 0, n_shared, Kr, Ki)
+        _lower_gram_rows(Kr, Ki, 0, n_shared, n_shared, Sh_r, Sh_i)
         for o in range(Y.shape[0]):
             # 2. this row's denominator columns: its rows of G and L, and
             # its rows [X, K22] of K = L^-1
@@ -139,14 +138,14 @@ def _eiv_range_py(
             for w in range(LANES):
                 ok[w] = ok_shared[w]
             _compiled._cholesky_rows(Hr, Hi, scale2, ok, tol2, n_shared, p)
-            _inverse_rows(Hr, Hi, n_shared, p, Kr, Ki, acc_r, acc_i)
+            _inverse_rows(Hr, Hi, n_shared, p, Kr, Ki)
             # 3.-5. this row's w(r) = |e(x_r)|^2, then its G^-1, H, trace
             # and band block (_row_terms)
             _denominator_weight(den[o], powers, first, wt)
             _row_terms(
                 Kr, Ki, Sh_r, Sh_i, Cr, Ci, n_shared, p, sr, si, wt, w_kind,
                 w_a, w_b, w_nd, w_off, w_ptr, w_mom, w_coef, w_conj, w_const,
-                q_basis, Sr, Si, Er, Ei, Or, Oi, mwr, mwi, Wr, Wi, acc_r, acc_i,
+                q_basis, Sr, Si, Er, Ei, Or, Oi, mwr, mwi, Wr, Wi, acc_r,
                 P, first, band_first, n_bands, cbr, cbi, ybr, ybi, qr, qi,
                 trace[o], wsum[o], wmin[o], wmax[o], lead[o],
             )
@@ -158,8 +157,8 @@ def _eiv_range_py(
 def _row_scratch_py(p, n_shared, n_bands, L, w_n_moments):
     """Work arrays of :func:`_row_terms_py`: the weighted moments and ``H``
     (``W``), ``K = L^-1``, the shared ``K11^H K11`` (``Sh``) and ``G^-1``
-    (``C``), packed lower, the band-block temporaries, two lane accumulators
-    and the squared denominator ``wt``."""
+    (``C``), packed lower, the band-block temporaries, a lane accumulator
+    (the trace) and the squared denominator ``wt``."""
     f64 = np.float64
     n_packed = p * (p + 1) // 2
     n_packed_shared = n_shared * (n_shared + 1) // 2
@@ -174,14 +173,14 @@ def _row_scratch_py(p, n_shared, n_bands, L, w_n_moments):
         np.empty((p, n_bands, LANES), f64), np.empty((p, n_bands, LANES), f64),
         np.empty((n_bands, n_bands, LANES), f64),
         np.empty((n_bands, n_bands, LANES), f64),
-        np.empty(LANES, f64), np.empty(LANES, f64), np.empty((L, LANES), f64),
+        np.empty(LANES, f64), np.empty((L, LANES), f64),
     )
 
 
 def _row_terms_py(
     Kr, Ki, Sh_r, Sh_i, Cr, Ci, n_shared, p, sr, si, wt, w_kind, w_a, w_b, w_nd,
     w_off, w_ptr, w_mom, w_coef, w_conj, w_const, q_basis, Sr, Si, Er, Ei, Or,
-    Oi, mwr, mwi, Wr, Wi, acc_r, acc_i, P, first, band_first, n_bands, cbr, cbi,
+    Oi, mwr, mwi, Wr, Wi, acc_r, P, first, band_first, n_bands, cbr, cbi,
     ybr, ybi, qr, qi, trace, wsum, wmin, wmax, lead,
 ):
     """One output row's terms of the windows ``first + w``, given ``K = L^-1``
@@ -195,7 +194,7 @@ def _row_terms_py(
     n_packed_shared = n_shared * (n_shared + 1) // 2
     # G^-1 = K^H K (lower): the shared K11^H K11 plus the sums over this
     # row's rows of K
-    _lower_gram_rows(Kr, Ki, n_shared, p, p, Cr, Ci, acc_r, acc_i)
+    _lower_gram_rows(Kr, Ki, n_shared, p, p, Cr, Ci)
     for e in range(n_packed_shared):  # (the leading block, packed)
         for w in range(LANES):
             Cr[e, w] += Sh_r[e, w]
@@ -254,7 +253,7 @@ def _solve_eiv_range_py(
     n_bands = F
     band_first = n_shared - n_centre
     (mwr, mwi, Wr, Wi, Kr, Ki, Sh_r, Sh_i, Cr, Ci, cbr, cbi, ybr, ybi, qr, qi,
-     acc_r, acc_i, wt) = _row_scratch(p, n_shared, n_bands, L, w_n_moments)
+     acc_r, wt) = _row_scratch(p, n_shared, n_bands, L, w_n_moments)
     B = bins.shape[0]
     n_pairs = pair_kind.shape[0]
     shared_entries = n_packed_shared
@@ -277,8 +276,8 @@ def _solve_eiv_range_py(
             ok_shared[w] = True
         _compiled._cholesky_rows(Hr, Hi, scale2, ok_shared, tol2, 0, n_shared)
         # eiv, shared by the rows: K11 = L11^-1 and K11^H K11
-        _inverse_rows(Hr, Hi, 0, n_shared, Kr, Ki, acc_r, acc_i)
-        _lower_gram_rows(Kr, Ki, 0, n_shared, n_shared, Sh_r, Sh_i, acc_r, acc_i)
+        _inverse_rows(Hr, Hi, 0, n_shared, Kr, Ki)
+        _lower_gram_rows(Kr, Ki, 0, n_shared, n_shared, Sh_r, Sh_i)
         for o in range(Y.shape[0]):
             # steps 5-9 of _lane_group: this row's solve
             _compiled._gather_output(Y[o], k, F, n, sr, si)
@@ -308,12 +307,12 @@ def _solve_eiv_range_py(
             )
             # eiv terms of this row (steps 2-5 of _eiv_range) from the same
             # factor and window data, with the refined denominator (in dr/di)
-            _inverse_rows(Hr, Hi, n_shared, p, Kr, Ki, acc_r, acc_i)
+            _inverse_rows(Hr, Hi, n_shared, p, Kr, Ki)
             _lane_denominator_weight(dr, di, den_cols, ok, powers, wt)
             _row_terms(
                 Kr, Ki, Sh_r, Sh_i, Cr, Ci, n_shared, p, sr, si, wt, w_kind,
                 w_a, w_b, w_nd, w_off, w_ptr, w_mom, w_coef, w_conj, w_const,
-                q_basis, Sr, Si, Er, Ei, Or, Oi, mwr, mwi, Wr, Wi, acc_r, acc_i,
+                q_basis, Sr, Si, Er, Ei, Or, Oi, mwr, mwi, Wr, Wi, acc_r,
                 P, first, band_first, n_bands, cbr, cbi, ybr, ybi, qr, qi,
                 trace[o], wsum[o], wmin[o], wmax[o], lead[o],
             )
@@ -351,7 +350,7 @@ def _denominator_weight_py(den, powers, first, wt):
             wt[r, w] = er * er + ei * ei
 
 
-def _inverse_rows_py(Hr, Hi, lo, hi, Kr, Ki, acc_r, acc_i):
+def _inverse_rows_py(Hr, Hi, lo, hi, Kr, Ki):
     """Rows ``lo..hi-1`` of ``K = L^-1`` (``L`` packed lower, inverse pivots
     in ``Hi`` at the diagonal; ``K`` packed lower), rows ``0..lo-1`` of ``K``
     given: ``K_ii = 1 / L_ii``, ``K_ic = -(sum_{m=c}^{i-1} L_im K_mc) /
@@ -361,7 +360,7 @@ def _inverse_rows_py(Hr, Hi, lo, hi, Kr, Ki, acc_r, acc_i):
     streams one row of ``K`` (contiguous when packed) into row ``i`` (a few
     kB, cache-resident), where a sum per entry would read a column of ``K``,
     one far cache line per term (the MIMO blocks, n_s = 40, are MBs over the
-    lanes). ``acc_r``/``acc_i`` are unused (kept for the callers' scratch)."""
+    lanes)."""
     for i in range(lo, hi):
         ri = i * (i + 1) // 2
         inv = ri + i
@@ -388,13 +387,13 @@ def _inverse_rows_py(Hr, Hi, lo, hi, Kr, Ki, acc_r, acc_i):
             Ki[inv, w] = 0.0
 
 
-def _lower_gram_rows_py(Kr, Ki, lo, hi, n, Cr, Ci, acc_r, acc_i):
+def _lower_gram_rows_py(Kr, Ki, lo, hi, n, Cr, Ci):
     """Lower triangle (packed) of ``sum_{i=lo}^{hi-1} conj(K[i, :n])^T
     K[i, :n]`` (``K`` lower triangular, packed: the sum for ``C[c, d]``,
     ``c >= d``, starts at ``i = max(lo, c)``).
 
     Row ``c`` of ``C`` is accumulated in place from the rows ``K[i, :c+1]``
-    (contiguous), as in :func:`_inverse_rows`; ``acc_r``/``acc_i`` unused."""
+    (contiguous), as in :func:`_inverse_rows`."""
     for c in range(n):
         rc = c * (c + 1) // 2
         for d in range(c + 1):

@@ -534,8 +534,12 @@ TABLE_CACHE_BYTES = 2**26
 
 def _nbytes(value) -> int:
     """Bytes of the numpy arrays in ``value`` (tuples, lists, dicts and object
-    attributes, one level of objects deep: an attribute's arrays, tuples, lists
-    and dicts are counted, its objects are not)."""
+    attributes): an object's attributes that are arrays, tuples, lists or
+    dicts are counted, and the containers are followed into the objects they
+    hold; an attribute that is itself an object is not (a layout, the
+    ``LocalBasis`` of a :class:`~lrmfrf.windows.StructuredWindows`). An array
+    held twice counts twice; a container that holds its own owner would
+    recurse without end (no cached table does)."""
     if isinstance(value, np.ndarray):
         return value.nbytes
     if isinstance(value, (tuple, list)):
