@@ -775,16 +775,15 @@ def _eiv_covariance(lead, trace, rss, layout):
     return layout.F**2 * lead * s2[:, None, None]
 
 
-def _with_covariance(local_fit, cov):
+def _with_covariance(local_fit, cov, keep_cov=None):
     """``local_fit`` with the band covariance ``cov`` (NaN where not well
-    posed) as ``system_var`` and, when present, ``system_cov``."""
+    posed) as ``system_var`` and, when present (or ``keep_cov``),
+    ``system_cov``."""
+    if keep_cov is None:
+        keep_cov = local_fit.system_cov is not None
     cov[~local_fit.well_posed] = np.nan
     var = np.real(np.diagonal(cov, axis1=1, axis2=2)).copy()
-    return replace(
-        local_fit,
-        system_var=var,
-        system_cov=None if local_fit.system_cov is None else cov,
-    )
+    return replace(local_fit, system_var=var, system_cov=cov if keep_cov else None)
 
 
 def _keeps_lemma2(method: str, layout: LocalModelLayout) -> bool:
@@ -902,7 +901,8 @@ def iter_calibrated_fit_rows(
             rss = scale_by_power_of_two(fit.rss, -2 * y_exponent)
             cov = _eiv_covariance(lead, trace, rss, layout)
             cov = scale_by_power_of_two(cov, 2 * (y_exponent - u_exponent))
-            out.append(_with_covariance(fit, cov))
+            # (the chunk's fits come without Lemma 2's variances: eiv=True)
+            out.append(_with_covariance(fit, cov, keep_cov=return_cov))
         yield start, out
 
 
