@@ -429,7 +429,7 @@ def _fit_chunk_rows(U, Y, bins, layout, reference, options: _ChunkOptions):
     nb = layout.n_bands
     # Identifiability of G is decided by the input and transient columns.
     kwargs = {"rank_columns": layout.n_system + layout.n_transient}
-    if options.return_cov:
+    if options.return_cov and not options.eiv:  # (eiv: see _chunk_fit)
         kwargs["cov_columns"] = nb
     if options.rank_tol is not None:
         kwargs["rank_tol"] = options.rank_tol
@@ -455,23 +455,29 @@ def _fit_chunk_rows(U, Y, bins, layout, reference, options: _ChunkOptions):
 
 
 def _chunk_fit(sol, bins, layout, excited, options: _ChunkOptions):
-    """The :class:`LocalModelFit` of one output row from its solution."""
+    """The :class:`LocalModelFit` of one output row from its solution.
+
+    With ``options.eiv`` its ``system_var`` and ``system_cov`` are None: the
+    caller (:func:`lrmfrf.uncertainty.iter_calibrated_fit_rows`) replaces
+    them by the errors-in-variables ones, and Lemma 2's (``F^2 n_bands^2``
+    per window for the covariance: 36 values a window and row on 2x2, F = 3)
+    would only be computed to be dropped."""
     F, nb = layout.F, layout.n_bands
     well_posed = sol.well_posed & excited
     noise_var = noise_variance(sol.rss, layout.dof)
-    system_cov = None
-    if options.return_cov:
+    system_cov = system_var = None
+    if options.return_cov and not options.eiv:
         system_cov = F**2 * sol.lead_cov * noise_var[:, None, None]
     theta, rss = sol.theta, sol.rss
     system = F * theta[:, :nb]
-    system_var = lemma2_variance(sol.gram_inv_diag[:, :nb], noise_var, F)
+    if not options.eiv:
+        system_var = lemma2_variance(sol.gram_inv_diag[:, :nb], noise_var, F)
     transient_cols = [layout.transient_column(p) for p in range(layout.n_experiments)]
     transient = theta[:, transient_cols]
     bad = np.flatnonzero(~well_posed)
-    for arr in (theta, system, system_var, transient, noise_var, rss):
-        arr[bad] = np.nan
-    if system_cov is not None:
-        system_cov[bad] = np.nan
+    for arr in (theta, system, system_var, transient, noise_var, rss, system_cov):
+        if arr is not None:
+            arr[bad] = np.nan
     return LocalModelFit(
         layout=layout,
         slow_bins=bins,

@@ -768,23 +768,37 @@ def _eiv_terms_compiled(U, Y, layout, theta, slow_bins, raws=None):
     return lead, trace
 
 
-def _eiv_covariance(lead, trace, rss, layout):
-    """``F^2 sigma^2 S^H diag(w) S`` with ``sigma^2 = ||r||^2 / trace``."""
+def _eiv_covariance(lead, trace, rss, layout, exponent=0, out=None):
+    """``F^2 sigma^2 S^H diag(w) S`` with ``sigma^2 = ||r||^2 / trace``, times
+    ``2**exponent`` (exact; :func:`lrmfrf.local_models.scale_by_power_of_two`).
+
+    ``out`` (may be ``lead`` itself) receives the result in place of new
+    arrays: the same operations in the same order, so the same values, without
+    the temporaries (``n_bands^2`` complex values a window: 36 on 2x2, F = 3).
+    """
     with np.errstate(invalid="ignore", divide="ignore"):
         s2 = rss / trace
-    return layout.F**2 * lead * s2[:, None, None]
+    if out is None:
+        return scale_by_power_of_two(layout.F**2 * lead * s2[:, None, None],
+                                     exponent)
+    np.multiply(layout.F**2, lead, out=out)
+    np.multiply(out, s2[:, None, None], out=out)
+    if exponent:
+        with np.errstate(over="ignore", under="ignore"):
+            np.ldexp(out.real, exponent, out=out.real)
+            np.ldexp(out.imag, exponent, out=out.imag)
+    return out
 
 
-def _with_covariance(local_fit, cov):
+def _with_covariance(local_fit, cov, keep_cov=None):
     """``local_fit`` with the band covariance ``cov`` (NaN where not well
-    posed) as ``system_var`` and, when present, ``system_cov``."""
+    posed) as ``system_var`` and, when present (or ``keep_cov``),
+    ``system_cov``."""
+    if keep_cov is None:
+        keep_cov = local_fit.system_cov is not None
     cov[~local_fit.well_posed] = np.nan
     var = np.real(np.diagonal(cov, axis1=1, axis2=2)).copy()
-    return replace(
-        local_fit,
-        system_var=var,
-        system_cov=None if local_fit.system_cov is None else cov,
-    )
+    return replace(local_fit, system_var=var, system_cov=cov if keep_cov else None)
 
 
 def _keeps_lemma2(method: str, layout: LocalModelLayout) -> bool:
@@ -900,9 +914,11 @@ def iter_calibrated_fit_rows(
         for fit, y_exponent, lead, trace in zip(fits, y_exponents, leads, traces,
                                                 strict=True):
             rss = scale_by_power_of_two(fit.rss, -2 * y_exponent)
-            cov = _eiv_covariance(lead, trace, rss, layout)
-            cov = scale_by_power_of_two(cov, 2 * (y_exponent - u_exponent))
-            out.append(_with_covariance(fit, cov))
+            # (in place: the row's lead is not used again)
+            cov = _eiv_covariance(lead, trace, rss, layout,
+                                  2 * (y_exponent - u_exponent), out=lead)
+            # (the chunk's fits come without Lemma 2's variances: eiv=True)
+            out.append(_with_covariance(fit, cov, keep_cov=return_cov))
         yield start, out
 
 

@@ -245,10 +245,13 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         )
         n_bad = n_unexcited = 0
         for start, fits in chunks:
+            # (the fast bins of the chunk's slow bins: the same for every row)
+            targets = fast_grid_targets(start, start + fits[0].slow_bins.size,
+                                        N, F)
             for o, fit in enumerate(fits):
                 n_bad += int(np.count_nonzero(~fit.well_posed))
                 n_unexcited += int(np.count_nonzero(~fit.excited))
-                out.write(o, start, fit, N, F, u_exponent, y_exponent)
+                out.write(o, start, fit, N, F, u_exponent, y_exponent, targets)
         if n_bad:
             rows_note = " (over all output rows)" if n_y > 1 else ""
             msg = (
@@ -704,34 +707,37 @@ class _FittedArrays:
     noise: np.ndarray  # (n_y, B)
     transient: np.ndarray  # (P, n_y, B), complex
 
-    def write(self, o, start, fit, N, F, u_exponent, y_exponent) -> None:
+    def write(self, o, start, fit, N, F, u_exponent, y_exponent,
+              targets=None) -> None:
         """Write the results of slow bins ``start..`` of output row ``o``.
 
         The fast bins are those :func:`lrmfrf.local_models.one_sided_fast_grid`
         maps from these slow bins (:func:`lrmfrf.local_models.
-        fast_grid_targets`); values are scaled back by the records'
-        normalisation exponents as the whole arrays used to be.
+        fast_grid_targets`, or ``targets``, its result, shared by the output
+        rows of a chunk); values are scaled back by the records'
+        normalisation exponents as the whole arrays used to be. All inputs
+        (and input pairs of ``cov``) are gathered at once.
         """
         stop = start + fit.slow_bins.size
         system_exponent = y_exponent - u_exponent
-        fast, slow, band, mirrored = fast_grid_targets(start, stop, N, F)
+        if targets is None:
+            targets = fast_grid_targets(start, stop, N, F)
+        fast, slow, band, mirrored = targets
         n_u = self.frf.shape[1]
-        for i in range(n_u):
-            b = i * F + band
-            self.frf[o, i, fast] = scale_by_power_of_two(
-                _conj_where(fit.system[slow, b], mirrored), system_exponent
-            )
-            # std from the normalised variance: its square may leave the
-            # float range
-            self.std[o, i, fast] = scale_by_power_of_two(
-                np.sqrt(fit.system_var[slow, b]), system_exponent
-            )
-            for j in range(n_u):
-                self.cov[o, i, j, fast] = scale_by_power_of_two(
-                    _conj_where(fit.system_cov[slow, b, j * F + band], mirrored),
-                    2 * system_exponent,
-                )
-            self.valid[o, i, fast] = fit.well_posed[slow]
+        b = np.arange(n_u)[:, None] * F + band  # (n_u, T): input i's band
+        self.frf[o][:, fast] = scale_by_power_of_two(
+            _conj_where(fit.system[slow, b], mirrored), system_exponent
+        )
+        # std from the normalised variance: its square may leave the float
+        # range
+        self.std[o][:, fast] = scale_by_power_of_two(
+            np.sqrt(fit.system_var[slow, b]), system_exponent
+        )
+        self.cov[o][:, :, fast] = scale_by_power_of_two(
+            _conj_where(fit.system_cov[slow, b[:, None], b[None, :]], mirrored),
+            2 * system_exponent,
+        )
+        self.valid[o][:, fast] = fit.well_posed[slow]
         self.noise[o, start:stop] = scale_by_power_of_two(
             fit.noise_var, 2 * y_exponent
         )
