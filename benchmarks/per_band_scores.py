@@ -181,6 +181,8 @@ def misfit(rec: dict, reference: str) -> np.ndarray:
     """``(C, M//2+1)``: mean over the output rows of the log noise variance
     above the reference over the candidates (0 below it, and for ``min``)."""
     noise = rec["noise"]
+    if noise.ndim == 2:  # one output (SISO): (C, M//2+1)
+        noise = noise[:, None, :]
     log_nv = np.log(np.where(noise > 0, noise, np.nan))
     if reference == "min":
         ref = np.nanmin(log_nv, axis=0)
@@ -396,18 +398,29 @@ def disagreement_scores(rec: dict, kind: str, alpha: float) -> np.ndarray:
     return (base + 0.5 * alpha * np.log1p(zs))[:, None, :]
 
 
-def reference_set(rec: dict) -> list[int]:
-    """The rich, narrow candidates: ``num_degree >= 5``, ``den_degree >= 7``
-    and ``half_window <= 24`` (the settings that separate the aliased modes
-    on the cluster stages), of those with the fewest invalid bins."""
+def reference_set(rec: dict, rule: str = "grid") -> list[int]:
+    """The rich, narrow candidates, of those with the fewest invalid bins:
+    ``grid`` ``num_degree >= 5``, ``den_degree >= 7`` and ``half_window <=
+    24`` (the settings that separate the aliased modes on the cluster stages
+    of the default grid); ``median`` at least the median number of
+    parameters and at most the median half window of those candidates (a
+    rule that does not name the grid)."""
     ok = _fast_ok(rec)
     n_bad = (~ok).sum(axis=1)
-    return [c for c, p in enumerate(rec["params"])
-            if n_bad[c] == n_bad.min() and p["num_degree"] >= 5
-            and p["den_degree"] >= 7 and p["half_window"] <= 24]
+    pool = [c for c in range(len(rec["params"])) if n_bad[c] == n_bad.min()]
+    params = rec["params"]
+    if rule == "grid":
+        return [c for c in pool if params[c]["num_degree"] >= 5
+                and params[c]["den_degree"] >= 7
+                and params[c]["half_window"] <= 24]
+    size = np.array([_n_params(rec, params[c]) for c in pool])
+    width = np.array([params[c]["half_window"] for c in pool])
+    return [c for c, n, h in zip(pool, size, width, strict=True)
+            if n >= np.median(size) and h <= np.median(width)]
 
 
-def set_bias_scores(rec: dict, threshold: float) -> np.ndarray:
+def set_bias_scores(rec: dict, threshold: float,
+                    rule: str = "grid") -> np.ndarray:
     """:func:`significant_bias_scores` with the bias the smallest over the
     references of :func:`reference_set` (a candidate is biased only where it
     is far from every rich narrow fit, so one reference off by itself does
@@ -416,7 +429,7 @@ def set_bias_scores(rec: dict, threshold: float) -> np.ndarray:
     vc = var.sum(axis=(1, 2))
     Vc = smoothed(rec, slow_mean(rec, vc))
     bias = np.full(Vc.shape, np.inf)
-    for c in reference_set(rec):
+    for c in reference_set(rec, rule):
         with np.errstate(invalid="ignore", over="ignore"):
             d2 = (np.abs(frf - frf[c]) ** 2).sum(axis=(1, 2))
             v = (var + var[c]).sum(axis=(1, 2))
@@ -560,10 +573,13 @@ def bias_variants():
                        f"sharpness 30",
                        lambda r, k=kind, t=thr, fl=floor:
                            significant_bias_scores(r, k, t, floor=fl), 30.0)
-    for thr in (0.5, 1.0, 1.5, 2.0):
-        for sharp in (30.0, 15.0):
-            yield (f"sig set, threshold {thr:g}, sharpness {sharp:g}",
-                   lambda r, t=thr: set_bias_scores(r, t), sharp)
+    for rule in ("grid", "median"):
+        for thr in (0.5, 1.0, 1.5, 2.0):
+            for sharp in (30.0, 15.0):
+                yield (f"sig set{'' if rule == 'grid' else ' ' + rule}, "
+                       f"threshold {thr:g}, sharpness {sharp:g}",
+                       lambda r, t=thr, rl=rule: set_bias_scores(r, t, rl),
+                       sharp)
     for base in ("frob", "frobrel"):
         for kind, thr, rel in ((None, 0.0, False), ("narrow-rich", 1.5, False),
                                ("narrow-rich", 2.0, False),
