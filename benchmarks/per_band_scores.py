@@ -146,6 +146,19 @@ def fit_record_siso(seed: int, output: str, loop: str = "closed",
     }
 
 
+def with_min_dof(rec: dict, min_dof: int) -> dict:
+    """``rec`` with only the candidates of at least ``min_dof`` residual
+    degrees of freedom (``P (2 n + 1)`` equations less the parameters)."""
+    P = rec.get("P", 2)
+    keep = np.array([P * (2 * p["half_window"] + 1) - _n_params(rec, p)
+                     >= min_dof for p in rec["params"]])
+    out = dict(rec)
+    for name in ("frf", "std", "valid", "noise"):
+        out[name] = rec[name][keep]
+    out["params"] = [p for p, k in zip(rec["params"], keep, strict=True) if k]
+    return out
+
+
 def log_std_scores(rec: dict, mode: str) -> np.ndarray:
     """``(C, R, M//2+1)``: mean log std per slow bin, over the matrix
     (``R = 1``), per output row or per entry; ``inf`` where not valid."""
@@ -607,6 +620,9 @@ def main(argv=None) -> None:
     parser.add_argument("--variants", choices=("all", "std", "bias"),
                         default="all", help="the std-based scores of the first "
                         "round, the bias-aware ones, or both")
+    parser.add_argument("--min-dof", type=int, default=2,
+                        help="leave out candidates with fewer residual dof, as "
+                        "the library's blend does (_bands.SCORE_MIN_DOF)")
     parser.add_argument("--siso", action="store_true",
                         help="the SISO records of generalisation_selection.py "
                         "--per-band (G_y4 and G_z, closed loop) instead")
@@ -626,6 +642,7 @@ def main(argv=None) -> None:
         if args.cache is not None:
             with open(args.cache, "wb") as fh:
                 pickle.dump(records, fh)
+    records = [with_min_dof(r, args.min_dof) for r in records]
     reproduced = max(
         float(np.nanmax(np.abs(blend(r, log_std_scores(r, "matrix"),
                                      _bands.SCORE_SHARPNESS) - r["cv_frf"])))
