@@ -320,3 +320,22 @@ def test_cluster_mimo_stage_redraws_an_unstable_closed_loop(monkeypatch):
     assert isinstance(made[0], ValueError) and "not stabilise" in str(made[0])
     assert stage is made[1]
     assert np.max(np.abs(np.linalg.eigvals(stage.G.A))) < 1.0
+
+
+def test_per_bin_choice_leaves_out_candidates_with_one_residual_dof(record):
+    """GRID's (8, 2, 2, 4) has 17 equations for 16 parameters: the default
+    ``"pmse"`` criterion identifies it, ``"gaic"`` (2 dof) does not. Its
+    Lemma-2 std (one residual dof) is too noisy to weigh by, so the per-bin
+    blend leaves it out: the same candidates and the same FRF as with
+    ``"gaic"``, whose identifiable set is the blend's."""
+    u, y = record
+    pmse = LRMBeyondNyquistCV(**GRID, per_band=True).fit(u, y, F)
+    gaic = LRMBeyondNyquistCV(**GRID, per_band=True, criterion="gaic").fit(
+        u, y, F)
+    params = pmse.cv_results_["params"]
+    thin = [i for i, p in enumerate(params) if p["half_window"] == 8
+            and p["den_degree"] == 4]
+    assert np.isfinite(np.asarray(pmse.cv_results_["criterion"])[thin]).all()
+    assert not set(thin) & set(pmse.band_index_.tolist())
+    np.testing.assert_array_equal(pmse.band_index_, gaic.band_index_)
+    np.testing.assert_array_equal(pmse.frf_, gaic.frf_)

@@ -39,6 +39,15 @@ from ..local_models import one_sided_fast_grid
 SCORE_HALF_WIDTH = 5
 SCORE_SHARPNESS = 30.0
 
+#: Residual degrees of freedom a candidate needs to enter the per-bin blend
+#: (``bands=None``): a Lemma-2 std from one residual dof is too noisy to weigh
+#: by. The ``"pmse"`` criterion (the default) identifies candidates with one
+#: (``"gaic"`` needs two); with them in the blend, the cluster stages of
+#: ``benchmarks/generalisation_selection.py --per-band`` (SISO, seeds 1-8 /
+#: 11-18) went from 0.862x / 0.857x to 0.903x / 0.887x the best single
+#: setting's RMS error (``benchmarks/per_band_scores.py --siso``).
+SCORE_MIN_DOF = 2
+
 
 def region_bounds(bands, n_half: int, slow_frequencies: np.ndarray) -> np.ndarray:
     """Slow-bin boundaries ``0 = b_0 < b_1 < ... < b_R = n_half`` of the regions.

@@ -786,8 +786,11 @@ class _LocalModelCV(_BaseFRFEstimator):
         for name in _BAND_ATTRIBUTES:  # from an earlier per-band fit
             vars(self).pop(name, None)
         if params.get("per_band") and params["bands"] is None:
+            identifiable = np.flatnonzero(np.isfinite(value))
+            enough = [i for i in identifiable
+                      if layouts[i].dof >= _bands.SCORE_MIN_DOF]
             self._fit_per_bin(params, u, y, F, sample_time, candidates,
-                              np.flatnonzero(np.isfinite(value)))
+                              np.array(enough) if enough else identifiable)
         elif params.get("per_band"):
             per_bin = {i: res.per_bin for i, res in zip(todo, results, strict=True)}
             self._fit_per_band(params, u, y, F, sample_time, candidates, layouts,
@@ -796,9 +799,12 @@ class _LocalModelCV(_BaseFRFEstimator):
 
     def _fit_per_bin(self, params, u, y, F, sample_time, candidates,
                      identifiable) -> None:
-        """Weigh every identifiable candidate per slow bin by its predicted
-        std (:mod:`lrmfrf.estimators._bands`) and blend their FRFs."""
-        fitted = {self.best_index_: self.best_estimator_}
+        """Weigh the candidates ``identifiable`` (those of at least
+        :data:`~lrmfrf.estimators._bands.SCORE_MIN_DOF` residual dof, if any)
+        per slow bin by their predicted std (:mod:`lrmfrf.estimators._bands`)
+        and blend their FRFs."""
+        fitted = ({self.best_index_: self.best_estimator_}
+                  if self.best_index_ in identifiable else {})
         for i in progress(identifiable, enabled=params["verbose"], desc="refits"):
             if int(i) not in fitted:
                 fitted[int(i)] = self._refit(params, candidates[i], u, y, F,
@@ -810,6 +816,10 @@ class _LocalModelCV(_BaseFRFEstimator):
         weights = _bands.score_weights(scores, _bands.SCORE_SHARPNESS)
         used = [c for c in range(len(order)) if np.nansum(weights[c]) > 0]
         if not used:  # no slow bin identified by any candidate
+            if self.best_index_ not in order:  # best has too few dof to blend
+                order.append(self.best_index_)
+                estimators.append(self.best_estimator_)
+                weights = np.vstack([weights, np.full(weights[:1].shape, np.nan)])
             used = [order.index(self.best_index_)]
         blended = _bands.blend([estimators[c] for c in used], weights[used],
                                self.n_samples_, F)
