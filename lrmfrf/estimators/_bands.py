@@ -40,8 +40,9 @@ SCORE_HALF_WIDTH = 5
 SCORE_SHARPNESS = 30.0
 
 #: Residual degrees of freedom a candidate needs to enter the per-bin blend
-#: (``bands=None``): a Lemma-2 std from one residual dof is too noisy to weigh
-#: by. The ``"pmse"`` criterion (the default) identifies candidates with one
+#: (``bands=None``): a std estimated from one residual dof (the noise level of
+#: Lemma 2 and of the default eiv route alike) is too noisy to weigh by. The
+#: ``"pmse"`` criterion (the default) identifies candidates with one
 #: (``"gaic"`` needs two); with them in the blend, the cluster stages of
 #: ``benchmarks/generalisation_selection.py --per-band`` (SISO, seeds 1-8 /
 #: 11-18) went from 0.862x / 0.857x to 0.903x / 0.887x the best single

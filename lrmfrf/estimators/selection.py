@@ -965,15 +965,17 @@ class LRMBeyondNyquistCV(_LocalModelCV):
         Choose the setting per frequency instead of once. A slow bin (window
         centre) fixes its ``F`` aliased fast bins at once, so the choice is
         made per slow bin and covers every fast frequency that aliases onto
-        it. With ``bands=None`` every identifiable candidate is fitted and
-        weighted at each slow bin by its predicted ``frf_std_`` (its mean
+        it. With ``bands=None`` every identifiable candidate with at least two
+        residual degrees of freedom (all identifiable ones if none has; a std
+        from one dof is too noisy to weigh by) is fitted and weighted at each
+        slow bin by its predicted ``frf_std_`` (its mean
         ``log`` over the bin's fast bins, averaged over 11 neighbouring slow
         bins; weights ``exp(-30 (score - best score))``), and ``frf_`` is the
         weighted sum of their FRFs: the output residual of a window cannot
         tell how well it separates the aliased bands, the band covariance
         can (see :mod:`lrmfrf.estimators._bands`). Use it when a record has
         smooth regions (rigid body, roll-off) next to resonances that alias
-        onto one slow frequency; it costs one fit per identifiable candidate
+        onto one slow frequency; it costs one fit per such candidate
         (up to 64 on the default grid) and keeps the fits with weight
         somewhere. On cluster
         stages (``benchmarks/generalisation_selection.py --per-band``) it cut
