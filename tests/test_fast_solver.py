@@ -902,3 +902,41 @@ def test_single_threaded_blas_failing_entry_gives_the_threads_back(
     with _single_threaded_blas():
         assert blas_threads() == [1] * len(before)
     assert blas_threads() == before
+
+
+
+
+def test_fit_interrupted_between_chunks_gives_the_blas_threads_back(
+    two_blas_threads, monkeypatch
+):
+    """The streamed fit reads its chunks from a generator that holds a
+    single-threaded-BLAS section while it is suspended. An exception raised by
+    the code reading the chunks (here in the first write of the fitted arrays;
+    e.g. a ``KeyboardInterrupt``) left the generator, a local of ``fit``,
+    suspended inside that section for as long as the exception's traceback
+    lived (``sys.last_traceback`` in a REPL, an exception kept for a log): BLAS
+    stayed on one thread (before: ``[1, 1] == [2, 2]`` with the traceback
+    alive). The section is left at once now."""
+    from lrmfrf import LRMBeyondNyquist, _blas_threads
+    from lrmfrf.estimators import local
+
+    before = two_blas_threads
+    rng = np.random.default_rng(3)
+    u = multisine(600, rng=rng)
+    y = simulate_resonant(u, 3, 0.002, rng)
+    est = LRMBeyondNyquist(half_window=12, num_degree=2, transient_degree=2,
+                           den_degree=2)
+
+    def interrupt(*args, **kwargs):
+        raise KeyboardInterrupt("while reading a chunk")
+
+    monkeypatch.setattr(local._FittedArrays, "write", interrupt)
+    with pytest.raises(KeyboardInterrupt, match="reading a chunk") as info:
+        est.fit(u, y, 3)
+    assert info.tb is not None  # the frames of fit stay alive
+    assert blas_threads() == before
+    assert not _blas_threads._open_sections
+    monkeypatch.undo()
+    est.fit(u, y, 3)  # and the next fit is whole
+    assert np.isfinite(est.frf_).all()
+    assert blas_threads() == before

@@ -207,8 +207,15 @@ class _LocalModelEstimator(_BaseFRFEstimator):
             chunks = iter_calibrated_fit_rows(
                 spectra, layout, std_method, return_cov=True, backend=backend
             )
-        self._set_fitted(chunks, layout, N, M, F, P, n_y, sample_time,
-                         u_exponent, y_exponent)
+        try:
+            self._set_fitted(chunks, layout, N, M, F, P, n_y, sample_time,
+                             u_exponent, y_exponent)
+        finally:
+            if not whole:
+                # the generator holds a single-threaded-BLAS section while
+                # suspended: an exception here (e.g. KeyboardInterrupt) would
+                # keep it, and BLAS on one thread, as long as its traceback
+                chunks.close()
         if whole:
             fits = [rescale_local_fit(fit, u_exponent, y_exponent) for fit in fits]
             self.local_fit_ = fits[0] if n_u == n_y == 1 else fits
