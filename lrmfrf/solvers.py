@@ -63,6 +63,15 @@ BACKENDS = ("auto", "numpy", "numba")
 #: from numba's cache in ~0.3 s).
 COMPILED_MIN_WORK = 8192 * 27**2
 
+#: How much dearer a window of the numpy path is with the errors-in-variables
+#: terms of the default std (``std_method="eiv"``): 3.3-4.0x the closed form
+#: alone (SISO, F = 3, N = 3e3-2.4e4, 2026-11-27). ``resolve_backend(...,
+#: eiv=True)`` divides :data:`COMPILED_MIN_WORK` by it, so a default fit keeps
+#: about the closed form's time budget on numpy before it compiles (~0.3 s:
+#: N = 1.2e4 at F = 3 stays on numpy; the closed form's threshold alone had let
+#: eiv fits of up to ~1-2 s run there).
+EIV_NUMPY_COST = 4
+
 
 @dataclass
 class LocalSolution:
@@ -490,7 +499,8 @@ def _normal_equations_numpy(windows, n_centre, fallback_tol, refine_steps):
 
 
 def resolve_backend(
-    backend: str, n_windows: int | None = None, n_params: int = 27
+    backend: str, n_windows: int | None = None, n_params: int = 27, *,
+    eiv: bool = False,
 ) -> str:
     """Map ``backend`` of :func:`solve_local_normal_equations` to a path.
 
@@ -502,6 +512,10 @@ def resolve_backend(
         n_params**2`` below :data:`COMPILED_MIN_WORK` selects ``"numpy"``.
     n_params : int, default=27
         Parameters of one local problem.
+    eiv : bool, default=False
+        The fit computes the errors-in-variables terms of the std: the numpy
+        path costs :data:`EIV_NUMPY_COST` times more per window, and the
+        threshold is that much lower.
 
     Returns
     -------
@@ -520,7 +534,9 @@ def resolve_backend(
             "backend='auto' or 'numpy'."
         )
     if backend == "auto":
-        small = n_windows is not None and n_windows * n_params**2 < COMPILED_MIN_WORK
+        cost = EIV_NUMPY_COST if eiv else 1
+        small = (n_windows is not None
+                 and cost * n_windows * n_params**2 < COMPILED_MIN_WORK)
         use_compiled = _compiled.AVAILABLE and not disabled and not small
         return "numba" if use_compiled else "numpy"
     return backend

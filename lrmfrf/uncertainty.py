@@ -689,7 +689,7 @@ def eiv_terms_rows(
             f"`theta` must have shape (n_rows, B, n_params) = ({n_rows}, {B}, "
             f"{layout.n_params}); got {theta.shape} instead."
         )
-    backend = resolve_backend(backend, B, layout.n_params)
+    backend = resolve_backend(backend, B, layout.n_params, eiv=True)
     if backend != "numba":
         parts = [variance_terms(U, Y[:, o], layout, theta[o], slow_bins,
                                 with_hc=False) for o in range(n_rows)]
@@ -801,8 +801,9 @@ def _with_covariance(local_fit, cov, keep_cov=None):
     return replace(local_fit, system_var=var, system_cov=cov if keep_cov else None)
 
 
-def _keeps_lemma2(method: str, layout: LocalModelLayout) -> bool:
-    """Whether route ``method`` gives Lemma 2's variance on ``layout``."""
+def keeps_lemma2(method: str, layout: LocalModelLayout) -> bool:
+    """Whether route ``method`` gives Lemma 2's variance on ``layout`` (then it
+    computes no terms beyond the closed form's)."""
     return (method == "lemma2" or layout.dof <= 0
             or (method == "eiv" and layout.den_degree == 0))
 
@@ -844,10 +845,11 @@ def iter_calibrated_fits(
         )
     fits = iter_local_fits(spectra, layout, output=output, backend=backend,
                            return_cov=return_cov)
-    if _keeps_lemma2(method, layout):
+    if keeps_lemma2(method, layout):
         yield from fits
         return
-    backend = resolve_backend(backend, spectra.n_slow // 2 + 1, layout.n_params)
+    backend = resolve_backend(backend, spectra.n_slow // 2 + 1, layout.n_params,
+                              eiv=True)
     # the normalisation of iter_local_fits: the terms are computed on the
     # normalised chunk and the covariance scaled back as the system's square
     u_exponent = power_of_two_exponent(spectra.inputs)
@@ -888,12 +890,13 @@ def iter_calibrated_fit_rows(
             f"`method` {method!r} does not stream; use 'lemma2' or 'eiv', or "
             "calibrated_local_fit on the whole fit."
         )
-    if _keeps_lemma2(method, layout):
+    if keeps_lemma2(method, layout):
         yield from iter_local_fit_rows(spectra, layout, backend=backend,
                                        return_cov=return_cov)
         return
     n_y = spectra.outputs.shape[1]
-    backend = resolve_backend(backend, spectra.n_slow // 2 + 1, layout.n_params)
+    backend = resolve_backend(backend, spectra.n_slow // 2 + 1, layout.n_params,
+                              eiv=True)
     # the normalisation of iter_local_fit_rows, row by row
     u_exponent = power_of_two_exponent(spectra.inputs)
     y_exponents = [power_of_two_exponent(spectra.outputs[:, o]) for o in range(n_y)]
@@ -946,7 +949,7 @@ def calibrated_local_fit(U, Y, layout: LocalModelLayout, local_fit, method: str)
         ``system_var`` and ``system_cov`` (when present) replaced. The noise
         variance and the parameters are unchanged.
     """
-    if _keeps_lemma2(method, layout):
+    if keeps_lemma2(method, layout):
         return local_fit  # (eiv with e(x) = 1: the sandwich is Lemma 2, LPM)
     if method == "eiv":  # compiled (numba) where available
         lead, trace = eiv_terms(U, Y, layout, local_fit.theta,
@@ -1017,7 +1020,7 @@ def calibrated_refined_fit(U, Y, layout: LocalModelLayout, closed_fit, refined_f
             "method='eiv' for a refined fit, or calibrated_local_fit for the "
             "closed form."
         )
-    if method != "eiv" or _keeps_lemma2(method, layout):
+    if method != "eiv" or keeps_lemma2(method, layout):
         return refined_fit
     _, trace = eiv_terms(U, Y, layout, closed_fit.theta, closed_fit.slow_bins)
     with np.errstate(invalid="ignore", divide="ignore"):

@@ -369,6 +369,33 @@ def test_auto_backend_compiles_only_for_long_records(monkeypatch):
     assert resolve_backend("auto", 1600, 62) == expected
     assert resolve_backend("auto", 1500, 62) == "numpy"
     assert resolve_backend("numpy", 10**9) == "numpy"
+    # the eiv terms of the default std make a numpy window ~4x dearer
+    from lrmfrf.solvers import EIV_NUMPY_COST
+
+    assert EIV_NUMPY_COST == 4
+    assert resolve_backend("auto", 2047, 27, eiv=True) == "numpy"
+    assert resolve_backend("auto", 2048, 27, eiv=True) == expected
+    assert resolve_backend("auto", 2048, 27) == "numpy"
+
+
+@pytest.mark.skipif(not _compiled.AVAILABLE, reason="needs numba")
+def test_default_std_compiles_sooner_than_lemma2(monkeypatch):
+    """A record of 2100 windows: the default (eiv) fit is compiled, the Lemma-2
+    fit (and LPM, whose eiv std is Lemma 2's) stays on numpy."""
+    from lrmfrf import LPMBeyondNyquist, LRMBeyondNyquist
+
+    monkeypatch.delenv("LRMFRF_DISABLE_NUMBA", raising=False)
+    F, M = 3, 4198  # M // 2 + 1 = 2100 slow bins
+    rng = np.random.default_rng(3)
+    u = rng.standard_normal(F * M)
+    y = rng.standard_normal(M)
+    backends = {}
+    for name, est in (("eiv", LRMBeyondNyquist()),
+                      ("lemma2", LRMBeyondNyquist(std_method="lemma2")),
+                      ("lpm", LPMBeyondNyquist())):
+        est.fit(u, y, F)
+        backends[name] = est._local_fit_source_.backend
+    assert backends == {"eiv": "numba", "lemma2": "numpy", "lpm": "numpy"}
 
 
 def test_qr_fallback_in_bounded_batches(monkeypatch, backend):

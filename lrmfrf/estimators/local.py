@@ -40,6 +40,7 @@ from ..uncertainty import (
     calibrated_refined_fit,
     check_std_method,
     iter_calibrated_fit_rows,
+    keeps_lemma2,
 )
 from ..windows import LocalModelLayout
 from ._base import _BaseFRFEstimator, _normalise_in_place
@@ -176,10 +177,11 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         # real records: one-sided DFTs (half the memory, the same values)
         spectra = OneSidedSpectra.from_records(u, y, F)
         del u, y, records
-        backend = resolve_backend("auto", M // 2 + 1, layout.n_params)
         self._reset_refinement()
         refines = self._refines(params)
         std_method = params.get("std_method", "lemma2")
+        backend = resolve_backend("auto", M // 2 + 1, layout.n_params,
+                                  eiv=not keeps_lemma2(std_method, layout))
         # refinement and the std routes of lrmfrf.uncertainty other than
         # Lemma 2 and eiv need the whole per-window fit: not streamed
         whole = refines or std_method not in ("lemma2", "eiv")
