@@ -976,6 +976,40 @@ def fast_grid_targets(start: int, stop: int, n_samples: int, F: int):
     return fast, slow, band, mirrored
 
 
+def _fast_grid_runs(start: int, stop: int, n_samples: int, F: int):
+    """:func:`fast_grid_targets` as runs of consecutive bins: the same fast
+    bins, sources and conjugation, for writing with slices.
+
+    For each band ``f`` the direct bins ``j = k + fM`` of the slow bins
+    ``k`` of ``start..stop-1`` that it keeps are one run of consecutive
+    ``k`` and ``j``, and so are the mirrored bins ``j = N - k - fM``, in the
+    opposite order.
+
+    Returns
+    -------
+    list of tuple
+        ``(f, k0, k1, j0, mirrored)``: slow bins ``start + k0 .. start + k1 -
+        1`` of band ``f`` fill fast bins ``j0 .. j0 + k1 - k0 - 1``, in the
+        same order (``mirrored`` False) or reversed and conjugated (True,
+        ``j0 = N - (start + k1 - 1) - fM``).
+    """
+    M = n_samples // F
+    half = n_samples // 2
+    runs = []
+    for f in range(F):
+        k1 = min(stop, half - f * M + 1)  # direct: k + fM <= N//2
+        if k1 > start:
+            runs.append((f, 0, k1 - start, start + f * M, False))
+    for f in range(F):
+        # mirrored: k > 0, M - k > M//2 and N - k - fM <= N//2
+        k0 = max(start, 1, n_samples - half - f * M)
+        k1 = min(stop, M - M // 2)
+        if k1 > k0:
+            runs.append((f, k0 - start, k1 - start, n_samples - (k1 - 1) - f * M,
+                         True))
+    return runs
+
+
 def default_chunk_size(layout: LocalModelLayout, solver: str = "qr") -> int:
     """Windows per chunk that keep a chunk's largest arrays near 64 MiB."""
     if solver != "normal":
