@@ -31,8 +31,8 @@ from .solvers import (
     noise_variance,
     qr_chunk_size,
     resolve_backend,
+    _solve_normal_rows,
     solve_local_least_squares,
-    solve_local_normal_equations,
 )
 from .windows import (
     LocalModelLayout,
@@ -433,8 +433,9 @@ def _fit_chunk_rows(U, Y, bins, layout, reference, options: _ChunkOptions):
         kwargs["cov_columns"] = nb
     if options.rank_tol is not None:
         kwargs["rank_tol"] = options.rank_tol
+    theta_rows = eiv_raw = None
     if options.solver == "normal":
-        solutions = solve_local_normal_equations(
+        solutions, theta_rows, eiv_raw = _solve_normal_rows(
             U, Y, bins, layout, refine_steps=options.refine_steps,
             backend=options.backend, eiv=options.eiv, **kwargs
         )
@@ -449,8 +450,10 @@ def _fit_chunk_rows(U, Y, bins, layout, reference, options: _ChunkOptions):
     excited = (_relative_excitation(U, Y.shape[-1], bins, layout, reference)
                > EXCITATION_TOL).all(axis=1)
     fits = [_chunk_fit(sol, bins, layout, excited, options) for sol in solutions]
-    if options.eiv:  # (the terms computed with the solve, None without them)
-        return fits, [getattr(sol, "eiv_raw", None) for sol in solutions]
+    if options.eiv:
+        # the terms computed with the solve (None without them) and the rows'
+        # theta, each with a leading row axis (theta: None from the QR solver)
+        return fits, (eiv_raw, theta_rows)
     return fits
 
 
@@ -824,11 +827,13 @@ def _iter_fit_rows(
     start : int
     fits : list of LocalModelFit
     extra : tuple or None
-        ``(U, Y, bins, raws)`` with ``eiv=True``: the chunk's spectra (inputs
-        scaled by ``2**-u_exponent``, each output row by its own exponent, as
-        the solve saw them), its window bins and the per-row ``eiv_raw`` of
-        :class:`lrmfrf.solvers.LocalSolution` (None entries on the numpy
-        path); None otherwise.
+        ``(U, Y, bins, raws, theta)`` with ``eiv=True``: the chunk's spectra
+        (inputs scaled by ``2**-u_exponent``, each output row by its own
+        exponent, as the solve saw them), its window bins, the ``eiv_raw``
+        terms of :class:`lrmfrf.solvers.LocalSolution` of all rows with a
+        leading row axis (None on the numpy path) and the normalised
+        ``theta`` of all rows, (n_rows, B, n_params), the memory of the
+        fits' ``theta`` where no exponent rescales them; None otherwise.
     """
     if outputs is None:
         outputs = range(spectra.outputs.shape[1])
@@ -865,8 +870,8 @@ def _iter_fit_rows(
             fits = _fit_chunk_rows(U, Y, bins, layout, reference, options)
             extra = None
             if eiv:
-                fits, raws = fits
-                extra = (U, Y, bins, raws)
+                fits, (raws, theta_rows) = fits
+                extra = (U, Y, bins, raws, theta_rows)
             del U, Y
             yield start, [
                 rescale_local_fit(
