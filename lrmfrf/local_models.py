@@ -917,10 +917,15 @@ def _iter_fit_rows(
     refine_steps: int = 1,
     return_cov: bool = False,
     eiv: bool = False,
+    exponents: tuple | None = None,
 ):
     """:func:`iter_local_fit_rows`, also yielding each chunk's normalised
     spectra and, with ``eiv=True`` and the compiled kernel, the
     errors-in-variables terms computed with the solve.
+
+    ``exponents``: ``(u_exponent, y_exponents)`` of the normalisation when
+    the caller has them (:func:`power_of_two_exponent` of the inputs and of
+    each output row of ``outputs``), else computed here.
 
     Yields
     ------
@@ -949,8 +954,12 @@ def _iter_fit_rows(
     chunk_size = max(1, chunk_size)
     # the exponents normalise_spectra would take on the full DFTs (the same
     # largest |real| and |imag| parts), applied to each chunk's copy
-    u_exponent = power_of_two_exponent(spectra.inputs)
-    y_exponents = [power_of_two_exponent(spectra.outputs[:, o]) for o in outputs]
+    if exponents is None:
+        u_exponent = power_of_two_exponent(spectra.inputs)
+        y_exponents = [power_of_two_exponent(spectra.outputs[:, o])
+                       for o in outputs]
+    else:
+        u_exponent, y_exponents = exponents
     mean_energy = _one_sided_mean_energy(spectra.inputs, spectra.n_samples)
     reference = _excitation_reference(
         scale_by_power_of_two(mean_energy, -2 * u_exponent), layout
