@@ -232,7 +232,7 @@ def test_window_spectra_are_the_gathered_values(F, M):
                 assert Y.tobytes() == Y_ref.tobytes(), (n, start, stop, output)
 
 
-@pytest.mark.parametrize("gap", [None, "band", "all", "one input"])
+@pytest.mark.parametrize("gap", [None, "band", "faint", "all", "one input"])
 def test_excited_windows_as_the_relative_excitation(gap):
     """The excitation test's shortcut (bands whose least bin energy clears the
     tolerance skip the window sums) gives the booleans of the relative
@@ -246,6 +246,8 @@ def test_excited_windows_as_the_relative_excitation(gap):
     U_full = np.fft.rfft(rng.standard_normal((P, n_u, N)), axis=-1)
     if gap == "band":
         U_full[..., 200:230] = 0
+    elif gap == "faint":  # not excited, but far from zero: the bound decides
+        U_full[..., 200:230] *= 1e-9
     elif gap == "all":
         U_full[...] = 0
     elif gap == "one input":
@@ -262,7 +264,7 @@ def test_excited_windows_as_the_relative_excitation(gap):
         np.testing.assert_array_equal(got, expected)
         if gap is None:
             assert expected.all()
-    if gap == "band":
+    if gap in ("band", "faint"):
         assert not expected.all()
 
 
