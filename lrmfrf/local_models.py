@@ -31,8 +31,8 @@ from .solvers import (
     noise_variance,
     qr_chunk_size,
     resolve_backend,
+    _solve_normal_rows,
     solve_local_least_squares,
-    solve_local_normal_equations,
 )
 from .windows import (
     LocalModelLayout,
@@ -305,6 +305,52 @@ def _relative_excitation(U, n_slow, bins, layout, reference) -> np.ndarray:
         return np.where(reference > 0, energy / reference, 0.0)
 
 
+#: Relative margin of the shortcut of :func:`_excited_windows`: far above
+#: the rounding of a window's sum of ``L`` energies and its division
+#: (``(L + 1) 2**-53``, 1e-11 for ``L = 10**5``).
+_EXCITED_MARGIN = 1e-9
+
+
+def _excited_windows(U, n_slow, bins, layout, reference) -> np.ndarray:
+    """``(_relative_excitation(...) > EXCITATION_TOL).all(axis=1)``: the same
+    booleans, shape (B,).
+
+    For consecutive windows every window of band ``b`` sums ``L`` energies
+    of the band's series, each at least its least value ``m``; the computed
+    sum is then at least ``L m (1 - 2**-53)**(L-1)`` and its ratio to the
+    reference at least ``L m / reference (1 - 2**-53)**L``. A band with ``L m
+    > EXCITATION_TOL reference (1 + 1e-9)`` (and ``m`` far from the
+    subnormals) is therefore excited in every window, and its window sums are
+    not computed; the others are summed and compared as
+    :func:`_relative_excitation` does. On a multisine every band clears it
+    (its least bin energy is a fair fraction of the mean, against ``1e-12``):
+    the sliding sums were most of the excitation test's time.
+    """
+    series = _energy_series(U, n_slow, bins, layout)
+    if series is None:  # not consecutive: as _relative_excitation
+        return (_relative_excitation(U, n_slow, bins, layout, reference)
+                > EXCITATION_TOL).all(axis=1)
+    L = layout.window
+    B = bins.size
+    least = series.min(axis=1)
+    with np.errstate(invalid="ignore", over="ignore"):
+        clear = ((least >= _LEAST_NORMAL_SUM) & (reference > 0)
+                 & (L * least > EXCITATION_TOL * reference
+                    * (1 + _EXCITED_MARGIN)))
+    excited = np.ones(B, dtype=bool)
+    for b in np.flatnonzero(~clear):
+        energy = sliding_window_view(series[b], L).sum(axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            relative = np.where(reference[b] > 0, energy / reference[b], 0.0)
+        excited &= relative > EXCITATION_TOL
+    return excited
+
+
+#: Least band energy for the shortcut of :func:`_excited_windows`: its
+#: partial sums are then normal floats (relative rounding ``2**-53``).
+_LEAST_NORMAL_SUM = 2.0**-900
+
+
 def fit_local_models(
     U: np.ndarray,
     Y: np.ndarray,
@@ -433,8 +479,9 @@ def _fit_chunk_rows(U, Y, bins, layout, reference, options: _ChunkOptions):
         kwargs["cov_columns"] = nb
     if options.rank_tol is not None:
         kwargs["rank_tol"] = options.rank_tol
+    theta_rows = eiv_raw = None
     if options.solver == "normal":
-        solutions = solve_local_normal_equations(
+        solutions, theta_rows, eiv_raw = _solve_normal_rows(
             U, Y, bins, layout, refine_steps=options.refine_steps,
             backend=options.backend, eiv=options.eiv, **kwargs
         )
@@ -446,11 +493,12 @@ def _fit_chunk_rows(U, Y, bins, layout, reference, options: _ChunkOptions):
                 A, b, return_leverage=options.return_leverage, **kwargs
             ))
             del A, b
-    excited = (_relative_excitation(U, Y.shape[-1], bins, layout, reference)
-               > EXCITATION_TOL).all(axis=1)
+    excited = _excited_windows(U, Y.shape[-1], bins, layout, reference)
     fits = [_chunk_fit(sol, bins, layout, excited, options) for sol in solutions]
-    if options.eiv:  # (the terms computed with the solve, None without them)
-        return fits, [getattr(sol, "eiv_raw", None) for sol in solutions]
+    if options.eiv:
+        # the terms computed with the solve (None without them) and the rows'
+        # theta, each with a leading row axis (theta: None from the QR solver)
+        return fits, (eiv_raw, theta_rows)
     return fits
 
 
@@ -561,27 +609,50 @@ def _window_energy(U: np.ndarray, n_slow: int, bins: np.ndarray, layout):
     :func:`iter_local_fits`) are summed with a sliding window over each
     band's energy series; others gather each window's bins.
     """
-    n, L, F = layout.half_window, layout.window, layout.F
+    n, L = layout.half_window, layout.window
+    B = bins.size
+    series = _energy_series(U, n_slow, bins, layout)
+    if series is not None:
+        # (each band's sums on its own 1-D series: the same values as ever)
+        out = np.empty((B, layout.n_bands))
+        for b in range(layout.n_bands):
+            out[:, b] = sliding_window_view(series[b], L).sum(axis=1)
+        return out
+    out = np.zeros((B, layout.n_bands))
+    r, _ = window_offsets(n)
+    idx = band_indices(bins[:, None] + r, layout, n_slow)  # (B, L, n_bands)
+    for p in range(U.shape[0]):
+        values = U[p][idx]
+        out += np.sum(values.real**2 + values.imag**2, axis=1)
+    return out
+
+
+def _energy_series(U: np.ndarray, n_slow: int, bins: np.ndarray, layout):
+    """``sum_p |U_{p,i}(k+fM)|^2`` over the bins that consecutive windows
+    ``bins`` read, per band ``b = i F + f``: shape (n_bands, B + 2n), or None
+    when the windows are not consecutive or wrap around the record.
+
+    Compact spectra (:meth:`OneSidedSpectra.window_spectra`) hold the bands
+    back to back and are squared and summed at once; each value is the same
+    sum over the experiments either way."""
+    n, F = layout.half_window, layout.F
     B = bins.size
     first = bins[0] - n if B else 0
     consecutive = (
         B > 0 and first >= 0 and bins[-1] + n < n_slow
         and np.array_equal(bins, np.arange(bins[0], bins[0] + B))
     )
-    out = np.zeros((B, layout.n_bands))
-    if consecutive:
-        N = F * n_slow
-        for b in range(layout.n_bands):
-            lo = (b // F) * N + (b % F) * n_slow + first
-            series = U[:, lo : lo + B + 2 * n]
-            energy = np.sum(series.real**2 + series.imag**2, axis=0)
-            out[:, b] = sliding_window_view(energy, L).sum(axis=1)
-        return out
-    r, _ = window_offsets(n)
-    idx = band_indices(bins[:, None] + r, layout, n_slow)  # (B, L, n_bands)
-    for p in range(U.shape[0]):
-        values = U[p][idx]
-        out += np.sum(values.real**2 + values.imag**2, axis=1)
+    if not consecutive:
+        return None
+    width = B + 2 * n
+    if first == 0 and width == n_slow and U.shape[1] == layout.n_bands * width:
+        return np.sum(U.real**2 + U.imag**2, axis=0).reshape(layout.n_bands, width)
+    N = F * n_slow
+    out = np.empty((layout.n_bands, width))
+    for b in range(layout.n_bands):
+        lo = (b // F) * N + (b % F) * n_slow + first
+        series = U[:, lo : lo + width]
+        out[b] = np.sum(series.real**2 + series.imag**2, axis=0)
     return out
 
 
@@ -667,11 +738,21 @@ class OneSidedSpectra:
             The compact window centres ``n .. n + stop - start - 1``.
         """
         N, M, F = self.n_samples, self.n_slow, self.F
-        slow = np.arange(start - half_window, stop + half_window)  # (M',)
-        fast = (slow[None, :] + M * np.arange(F)[:, None]) % N  # (F, M')
+        lo, hi = start - half_window, stop + half_window  # slow bins (M',)
         P, n_u, _ = self.inputs.shape
-        U = _periodic_values(self.inputs, fast.ravel(), N).reshape(P, -1)
-        Y = _periodic_values(self.outputs[:, output], slow % M, M)
+        # band f reads fast bins lo + fM .. hi - 1 + fM (mod N): a few runs
+        # of consecutive bins, copied with slices
+        U = np.empty((P, n_u, F, hi - lo), dtype=complex)
+        for f in range(F):
+            _periodic_range(self.inputs, lo + f * M, hi + f * M, N, U[:, :, f])
+        U = U.reshape(P, -1)
+        if np.ndim(output):
+            Y = np.empty((P, len(output), hi - lo), dtype=complex)
+            for i, o in enumerate(output):
+                _periodic_range(self.outputs[:, o], lo, hi, M, Y[:, i])
+        else:
+            Y = np.empty((P, hi - lo), dtype=complex)
+            _periodic_range(self.outputs[:, output], lo, hi, M, Y)
         bins = np.arange(stop - start) + half_window
         return U, Y, bins
 
@@ -692,6 +773,28 @@ def _periodic_values(half: np.ndarray, idx: np.ndarray, length: int) -> np.ndarr
     values = half[..., np.where(mirrored, length - idx, idx)]
     np.conjugate(values, out=values, where=mirrored)
     return values
+
+
+def _periodic_range(half: np.ndarray, lo: int, hi: int, length: int,
+                    out: np.ndarray) -> None:
+    """:func:`_periodic_values` at the consecutive bins ``lo..hi-1`` (mod
+    ``length``) into ``out`` (..., hi - lo): runs of bins up to the middle
+    copied as they are, runs above it from the mirrored bins in reverse order
+    and conjugated (the same values)."""
+    mid = length // 2
+    pos, j = 0, lo
+    while j < hi:
+        jm = j % length
+        if jm <= mid:
+            size = min(hi - j, mid + 1 - jm)
+            out[..., pos : pos + size] = half[..., jm : jm + size]
+        else:  # conj(half[length - jm]), conj(half[length - jm - 1]), ...
+            size = min(hi - j, length - jm)
+            part = out[..., pos : pos + size]
+            part[...] = half[..., length - jm - size + 1 : length - jm + 1][..., ::-1]
+            np.conjugate(part, out=part)
+        pos += size
+        j += size
 
 
 def _one_sided_mean_energy(half: np.ndarray, length: int) -> np.ndarray:
@@ -814,21 +917,28 @@ def _iter_fit_rows(
     refine_steps: int = 1,
     return_cov: bool = False,
     eiv: bool = False,
+    exponents: tuple | None = None,
 ):
     """:func:`iter_local_fit_rows`, also yielding each chunk's normalised
     spectra and, with ``eiv=True`` and the compiled kernel, the
     errors-in-variables terms computed with the solve.
+
+    ``exponents``: ``(u_exponent, y_exponents)`` of the normalisation when
+    the caller has them (:func:`power_of_two_exponent` of the inputs and of
+    each output row of ``outputs``), else computed here.
 
     Yields
     ------
     start : int
     fits : list of LocalModelFit
     extra : tuple or None
-        ``(U, Y, bins, raws)`` with ``eiv=True``: the chunk's spectra (inputs
-        scaled by ``2**-u_exponent``, each output row by its own exponent, as
-        the solve saw them), its window bins and the per-row ``eiv_raw`` of
-        :class:`lrmfrf.solvers.LocalSolution` (None entries on the numpy
-        path); None otherwise.
+        ``(U, Y, bins, raws, theta)`` with ``eiv=True``: the chunk's spectra
+        (inputs scaled by ``2**-u_exponent``, each output row by its own
+        exponent, as the solve saw them), its window bins, the ``eiv_raw``
+        terms of :class:`lrmfrf.solvers.LocalSolution` of all rows with a
+        leading row axis (None on the numpy path) and the normalised
+        ``theta`` of all rows, (n_rows, B, n_params), the memory of the
+        fits' ``theta`` where no exponent rescales them; None otherwise.
     """
     if outputs is None:
         outputs = range(spectra.outputs.shape[1])
@@ -844,8 +954,12 @@ def _iter_fit_rows(
     chunk_size = max(1, chunk_size)
     # the exponents normalise_spectra would take on the full DFTs (the same
     # largest |real| and |imag| parts), applied to each chunk's copy
-    u_exponent = power_of_two_exponent(spectra.inputs)
-    y_exponents = [power_of_two_exponent(spectra.outputs[:, o]) for o in outputs]
+    if exponents is None:
+        u_exponent = power_of_two_exponent(spectra.inputs)
+        y_exponents = [power_of_two_exponent(spectra.outputs[:, o])
+                       for o in outputs]
+    else:
+        u_exponent, y_exponents = exponents
     mean_energy = _one_sided_mean_energy(spectra.inputs, spectra.n_samples)
     reference = _excitation_reference(
         scale_by_power_of_two(mean_energy, -2 * u_exponent), layout
@@ -865,8 +979,8 @@ def _iter_fit_rows(
             fits = _fit_chunk_rows(U, Y, bins, layout, reference, options)
             extra = None
             if eiv:
-                fits, raws = fits
-                extra = (U, Y, bins, raws)
+                fits, (raws, theta_rows) = fits
+                extra = (U, Y, bins, raws, theta_rows)
             del U, Y
             yield start, [
                 rescale_local_fit(
@@ -974,6 +1088,40 @@ def fast_grid_targets(start: int, stop: int, n_samples: int, F: int):
     mirrored = np.zeros(fast.size, dtype=bool)
     mirrored[np.count_nonzero(direct_ok):] = True
     return fast, slow, band, mirrored
+
+
+def _fast_grid_runs(start: int, stop: int, n_samples: int, F: int):
+    """:func:`fast_grid_targets` as runs of consecutive bins: the same fast
+    bins, sources and conjugation, for writing with slices.
+
+    For each band ``f`` the direct bins ``j = k + fM`` of the slow bins
+    ``k`` of ``start..stop-1`` that it keeps are one run of consecutive
+    ``k`` and ``j``, and so are the mirrored bins ``j = N - k - fM``, in the
+    opposite order.
+
+    Returns
+    -------
+    list of tuple
+        ``(f, k0, k1, j0, mirrored)``: slow bins ``start + k0 .. start + k1 -
+        1`` of band ``f`` fill fast bins ``j0 .. j0 + k1 - k0 - 1``, in the
+        same order (``mirrored`` False) or reversed and conjugated (True,
+        ``j0 = N - (start + k1 - 1) - fM``).
+    """
+    M = n_samples // F
+    half = n_samples // 2
+    runs = []
+    for f in range(F):
+        k1 = min(stop, half - f * M + 1)  # direct: k + fM <= N//2
+        if k1 > start:
+            runs.append((f, 0, k1 - start, start + f * M, False))
+    for f in range(F):
+        # mirrored: k > 0, M - k > M//2 and N - k - fM <= N//2
+        k0 = max(start, 1, n_samples - half - f * M)
+        k1 = min(stop, M - M // 2)
+        if k1 > k0:
+            runs.append((f, k0 - start, k1 - start, n_samples - (k1 - 1) - f * M,
+                         True))
+    return runs
 
 
 def default_chunk_size(layout: LocalModelLayout, solver: str = "qr") -> int:

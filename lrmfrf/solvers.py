@@ -362,9 +362,28 @@ def solve_local_normal_equations(
         other columns (use :func:`solve_local_least_squares` for those);
         ``leverage`` is None.
     """
+    solutions, _, _ = _solve_normal_rows(
+        U, Y[:, None] if Y.ndim == 2 else Y, slow_bins, layout,
+        rank_tol=rank_tol, refine_steps=refine_steps, fallback_tol=fallback_tol,
+        rank_columns=rank_columns, backend=backend, cov_columns=cov_columns,
+        eiv=eiv,
+    )
+    return solutions[0] if Y.ndim == 2 else solutions
+
+
+def _solve_normal_rows(
+    U, rows, slow_bins, layout, *, rank_tol=RANK_TOL, refine_steps=1,
+    fallback_tol=CHOLESKY_FALLBACK_TOL, rank_columns=None, backend="auto",
+    cov_columns=0, eiv=False,
+):
+    """:func:`solve_local_normal_equations` of the rows of ``rows`` (P,
+    n_rows, M): the list of solutions, and also the arrays they are views of,
+    for callers that want all rows at once without stacking them again:
+    ``theta`` (n_rows, B, n_params), whose row ``o`` is ``solutions[o].theta``
+    (the same memory, so later changes of one show in the other), and the
+    ``eiv_raw`` terms with a leading row axis (None without them)."""
     slow_bins = np.asarray(slow_bins, dtype=int)
     backend = resolve_backend(backend, slow_bins.size, layout.n_params)
-    rows = Y[:, None] if Y.ndim == 2 else Y  # (P, n_rows, M)
     n_centre = layout.n_bands + layout.n_experiments
     eiv_raw = None
     if backend == "numba" and eiv:
@@ -413,7 +432,7 @@ def solve_local_normal_equations(
     if eiv_raw is not None:
         for o, solution in enumerate(solutions):
             solution.eiv_raw = tuple(part[o] for part in eiv_raw)
-    return solutions[0] if Y.ndim == 2 else solutions
+    return solutions, solved[0], eiv_raw
 
 
 def _with_qr_fallback(

@@ -698,18 +698,24 @@ def eiv_terms_rows(
     return _eiv_terms_compiled(U, Y, layout, theta, slow_bins)
 
 
-def _eiv_terms_compiled(U, Y, layout, theta, slow_bins, raws=None):
+def _eiv_terms_compiled(U, Y, layout, theta, slow_bins, raws=None, *,
+                        raw_rows=None):
     """The compiled route of :func:`eiv_terms_rows` (``backend="numba"``).
 
     ``raws``: optional per-row ``eiv_raw`` of
     :class:`lrmfrf.solvers.LocalSolution` (the kernel's terms computed with
     the solve of ``theta``; windows not ``valid`` there, i.e. re-solved by
     QR, are computed here again); without them every window is computed
-    here."""
+    here. ``raw_rows``: the same terms with a leading row axis (the kernel's
+    own arrays, used and changed in place instead of stacked anew)."""
     n_rows, B = theta.shape[:2]
-    good = np.all(np.isfinite(theta), axis=2)
+    good = _all_last(np.isfinite(theta))
     nb = layout.n_bands
-    if raws is None or any(raw is None for raw in raws):
+    if raw_rows is not None:
+        lead, hw_trace, w_sum, w_min, w_max, valid = raw_rows
+        todo = good & ~valid
+        ok = np.ones((n_rows, B), dtype=bool)
+    elif raws is None or any(raw is None for raw in raws):
         todo = np.ones((n_rows, B), dtype=bool)
         lead = np.empty((n_rows, B, nb, nb), dtype=complex)
         hw_trace, w_sum, w_min, w_max = (np.empty((n_rows, B)) for _ in range(4))
@@ -750,7 +756,7 @@ def _eiv_terms_compiled(U, Y, layout, theta, slow_bins, raws=None):
     # singular G (e.g. a rank-deficient denominator block on noise-free data)
     # dominates there; the dense route checks its inverse and falls back to
     # the pseudo-inverse
-    negative = np.any(np.real(np.diagonal(lead, axis1=-2, axis2=-1)) < 0, axis=-1)
+    negative = _any_last(np.real(np.diagonal(lead, axis1=-2, axis2=-1)) < 0)
     redo = good & (~ok | negative)
     chunk = qr_chunk_size(layout)
     # (the section reads and sets the BLAS thread counts: only when needed)
@@ -766,6 +772,22 @@ def _eiv_terms_compiled(U, Y, layout, theta, slow_bins, raws=None):
     lead[~good] = np.nan
     trace[~good] = np.nan
     return lead, trace
+
+
+def _all_last(flags: np.ndarray) -> np.ndarray:
+    """``flags.all(axis=-1)``; one pass over the whole array first (the
+    reduction along a short last axis is several times slower, and it is
+    usually all True)."""
+    if flags.all():
+        return np.ones(flags.shape[:-1], dtype=bool)
+    return flags.all(axis=-1)
+
+
+def _any_last(flags: np.ndarray) -> np.ndarray:
+    """``flags.any(axis=-1)``, as :func:`_all_last` (usually all False)."""
+    if not flags.any():
+        return np.zeros(flags.shape[:-1], dtype=bool)
+    return flags.any(axis=-1)
 
 
 def _eiv_covariance(lead, trace, rss, layout, exponent=0, out=None):
@@ -903,12 +925,16 @@ def iter_calibrated_fit_rows(
     # the compiled kernel computes the terms with the solve (same window data
     # and factor of A^H A); the chunk's normalised spectra come along for the
     # windows re-solved by QR
-    for start, fits, (U, Y, bins, raws) in _iter_fit_rows(
+    rescaled = u_exponent != 0 or any(y_exponents)
+    for start, fits, (U, Y, bins, raws, thetas) in _iter_fit_rows(
         spectra, layout, backend=backend, return_cov=return_cov, eiv=True,
+        exponents=(u_exponent, y_exponents),
     ):
-        thetas = np.stack([fit.theta for fit in fits])
+        if thetas is None or rescaled:  # (else the fits' theta: its memory)
+            thetas = np.stack([fit.theta for fit in fits])
         if backend == "numba":
-            leads, traces = _eiv_terms_compiled(U, Y, layout, thetas, bins, raws)
+            leads, traces = _eiv_terms_compiled(U, Y, layout, thetas, bins,
+                                                raw_rows=raws)
         else:  # the terms of all rows in one pass (shared input block)
             leads, traces = eiv_terms_rows(U, Y, layout, thetas, bins,
                                            backend=backend)

@@ -20,7 +20,14 @@ from conftest import CACHE_HINT, simulate_resonant
 
 from lrmfrf import LPMBeyondNyquist, LRMBeyondNyquist, _compiled
 from lrmfrf.local_models import (
+    EXCITATION_TOL,
     OneSidedSpectra,
+    _excitation_reference,
+    _excited_windows,
+    _fast_grid_runs,
+    _one_sided_mean_energy,
+    _periodic_values,
+    _relative_excitation,
     dft,
     fast_grid_targets,
     fit_local_models,
@@ -174,6 +181,93 @@ def test_fast_grid_targets_fill_the_grid_once(N, F):
         assert (hits == 1).all()
 
 
+@pytest.mark.parametrize("F", [1, 2, 3, 4, 5])
+@pytest.mark.parametrize("M", [1, 2, 7, 8, 9, 40, 41])
+def test_fast_grid_runs_are_the_targets(F, M):
+    """The runs of slices the estimators write with are fast_grid_targets:
+    the same fast bins, sources and conjugation, chunk by chunk."""
+    N, B = F * M, M // 2 + 1
+    for chunk in (1, 2, 3, 7, B):
+        for start in range(0, B, chunk):
+            stop = min(B, start + chunk)
+            fast, slow, band, mirrored = fast_grid_targets(start, stop, N, F)
+            expected = sorted(zip(fast.tolist(), slow.tolist(), band.tolist(),
+                                  mirrored.tolist()))
+            got = []
+            for f, k0, k1, j0, conj in _fast_grid_runs(start, stop, N, F):
+                ks = range(k1 - 1, k0 - 1, -1) if conj else range(k0, k1)
+                got += [(j0 + t, k, f, conj) for t, k in enumerate(ks)]
+            assert sorted(got) == expected, (start, stop)
+
+
+def gathered_window_spectra(spectra, start, stop, n, output):
+    """The compact spectra as they were gathered through index arrays."""
+    N, M, F = spectra.n_samples, spectra.n_slow, spectra.F
+    slow = np.arange(start - n, stop + n)
+    fast = (slow[None, :] + M * np.arange(F)[:, None]) % N
+    P = spectra.inputs.shape[0]
+    U = _periodic_values(spectra.inputs, fast.ravel(), N).reshape(P, -1)
+    Y = _periodic_values(spectra.outputs[:, output], slow % M, M)
+    return U, Y
+
+
+@pytest.mark.parametrize("F, M", [(1, 9), (2, 8), (3, 41), (3, 40), (5, 7)])
+def test_window_spectra_are_the_gathered_values(F, M):
+    """window_spectra copies runs with slices: bit for bit the values the index
+    arrays gathered, for windows that wrap around bin 0, cross the middle of
+    the one-sided spectra, or are wider than half the record."""
+    rng = np.random.default_rng(F * M)
+    u = rng.standard_normal((2, 2, F * M))
+    y = rng.standard_normal((2, 3, M))
+    spectra = OneSidedSpectra.from_records(u, y, F)
+    for n in range(1, M // 2 + 1):
+        for start, stop in [(0, 1), (0, M // 2 + 1), (M // 2, M // 2 + 1),
+                            (1, max(2, M // 3))]:
+            for output in (1, [2, 0]):
+                U, Y, bins = spectra.window_spectra(start, stop, n, output)
+                U_ref, Y_ref = gathered_window_spectra(spectra, start, stop, n,
+                                                       output)
+                assert U.shape == U_ref.shape and Y.shape == Y_ref.shape
+                assert U.tobytes() == U_ref.tobytes(), (n, start, stop)
+                assert Y.tobytes() == Y_ref.tobytes(), (n, start, stop, output)
+
+
+@pytest.mark.parametrize("gap", [None, "band", "faint", "all", "one input"])
+def test_excited_windows_as_the_relative_excitation(gap):
+    """The excitation test's shortcut (bands whose least bin energy clears the
+    tolerance skip the window sums) gives the booleans of the relative
+    energies, with and without unexcited windows."""
+    F, P, n_u, n, M = 3, 2, 2, 6, 301
+    N = F * M
+    layout = LocalModelLayout(F=F, half_window=n, num_degree=2,
+                              transient_degree=2, den_degree=2,
+                              n_experiments=P, n_inputs=n_u)
+    rng = np.random.default_rng(7)
+    U_full = np.fft.rfft(rng.standard_normal((P, n_u, N)), axis=-1)
+    if gap == "band":
+        U_full[..., 200:230] = 0
+    elif gap == "faint":  # not excited, but far from zero: the bound decides
+        U_full[..., 200:230] *= 1e-9
+    elif gap == "all":
+        U_full[...] = 0
+    elif gap == "one input":
+        U_full[:, 1, 100:103] = 0
+    spectra = OneSidedSpectra.from_records(np.fft.irfft(U_full, N, axis=-1),
+                                           rng.standard_normal((P, 1, M)), F)
+    reference = _excitation_reference(
+        _one_sided_mean_energy(spectra.inputs, N), layout)
+    for start, stop in [(0, 40), (40, 151), (0, M // 2 + 1)]:
+        U, Y, bins = spectra.window_spectra(start, stop, n, [0])
+        expected = (_relative_excitation(U, Y.shape[-1], bins, layout, reference)
+                    > EXCITATION_TOL).all(axis=1)
+        got = _excited_windows(U, Y.shape[-1], bins, layout, reference)
+        np.testing.assert_array_equal(got, expected)
+        if gap is None:
+            assert expected.all()
+    if gap in ("band", "faint"):
+        assert not expected.all()
+
+
 BACKENDS = ["numpy", pytest.param("numba", marks=pytest.mark.skipif(
     not _compiled.AVAILABLE, reason="numba not installed"))]
 
@@ -298,6 +392,47 @@ def test_several_chunks_write_the_same_outputs(monkeypatch):
     monkeypatch.setattr(local_models, "default_chunk_size", lambda *a, **k: 7)
     est = LRMBeyondNyquist().fit(u, y, 3)
     check_against_eager(est, u, y)
+
+
+@pytest.mark.filterwarnings("ignore::lrmfrf.exceptions.IdentifiabilityWarning")
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_chunks_write_the_fast_grid_bit_for_bit(monkeypatch, backend):
+    """The fitted arrays, written chunk by chunk with slices, are bit for bit
+    the fast grid of the chunks' band values (one_sided_fast_grid of
+    local_fit_, computed with the same chunks): 2x2, two experiments,
+    records scaled far from 1 and an input gap (NaN bins), small chunks."""
+    import lrmfrf.local_models as local_models
+
+    monkeypatch.setattr(local_models, "resolve_backend", lambda *a, **k: backend)
+    chunk = _compiled.LANES if backend == "numba" else 23
+    monkeypatch.setattr(local_models, "stream_chunk_size", lambda *a, **k: chunk)
+    monkeypatch.setattr(local_models, "default_chunk_size", lambda *a, **k: chunk)
+    F, N = 3, 3 * 2 * 401
+    u, y = mimo_data(N)
+    U = np.fft.rfft(u, axis=-1)
+    U[:, 1, 300:400] = 0  # windows without input 1 in a band: not valid
+    u = np.fft.irfft(U, N, axis=-1) * 2.0**-90
+    est = LRMBeyondNyquist(half_window=20).fit(u, y * 2.0**100, F)
+    assert not est.valid_.all() and est.valid_.any()
+    for o, fit in enumerate(est.local_fit_):
+        for i in range(2):
+            band = slice(i * F, (i + 1) * F)
+            cases = [
+                (est.frf_[o, i], one_sided_fast_grid(fit.system[:, band], N, F,
+                                                     conj=True)),
+                (est.frf_std_[o, i], np.sqrt(one_sided_fast_grid(
+                    fit.system_var[:, band], N, F, conj=False))),
+                (est.valid_[o, i], one_sided_fast_grid(
+                    np.repeat(fit.well_posed[:, None], F, axis=1), N, F,
+                    conj=False)),
+            ]
+            for j in range(2):
+                cases.append((est.frf_cov_[o, i, j], one_sided_fast_grid(
+                    np.diagonal(fit.system_cov[:, band, j * F:(j + 1) * F],
+                                axis1=1, axis2=2), N, F, conj=True)))
+            for actual, desired in cases:
+                assert actual.dtype == desired.dtype
+                assert actual.tobytes() == desired.tobytes()
 
 
 def test_local_fit_is_computed_on_first_access():

@@ -25,8 +25,8 @@ from .._validation import (
 from ..exceptions import IdentifiabilityWarning
 from ..local_models import (
     OneSidedSpectra,
+    _fast_grid_runs,
     _joined_fits,
-    fast_grid_targets,
     fit_local_models,
     half_slow_bins,
     rescale_local_fit,
@@ -255,12 +255,11 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         n_bad = n_unexcited = 0
         for start, fits in chunks:
             # (the fast bins of the chunk's slow bins: the same for every row)
-            targets = fast_grid_targets(start, start + fits[0].slow_bins.size,
-                                        N, F)
+            runs = _fast_grid_runs(start, start + fits[0].slow_bins.size, N, F)
             for o, fit in enumerate(fits):
                 n_bad += int(np.count_nonzero(~fit.well_posed))
                 n_unexcited += int(np.count_nonzero(~fit.excited))
-                out.write(o, start, fit, N, F, u_exponent, y_exponent, targets)
+                out.write(o, start, fit, N, F, u_exponent, y_exponent, runs)
         if n_bad:
             rows_note = " (over all output rows)" if n_y > 1 else ""
             msg = (
@@ -717,36 +716,43 @@ class _FittedArrays:
     transient: np.ndarray  # (P, n_y, B), complex
 
     def write(self, o, start, fit, N, F, u_exponent, y_exponent,
-              targets=None) -> None:
+              runs=None) -> None:
         """Write the results of slow bins ``start..`` of output row ``o``.
 
         The fast bins are those :func:`lrmfrf.local_models.one_sided_fast_grid`
-        maps from these slow bins (:func:`lrmfrf.local_models.
-        fast_grid_targets`, or ``targets``, its result, shared by the output
-        rows of a chunk); values are scaled back by the records'
-        normalisation exponents as the whole arrays used to be. All inputs
-        (and input pairs of ``cov``) are gathered at once.
+        maps from these slow bins, written run by run with slices
+        (:func:`lrmfrf.local_models._fast_grid_runs`, or ``runs``, its result,
+        shared by the output rows of a chunk; a handful of runs per chunk,
+        where gathering and scattering each bin through index arrays took
+        most of the Python time of a streamed MIMO fit); values are scaled
+        back by the records' normalisation exponents as the whole arrays used
+        to be. All inputs (and input pairs of ``cov``) of a band are written
+        at once. Each value goes through the same operations as before
+        (conjugation, ``sqrt`` and exact power-of-two scaling, elementwise),
+        so the results are the same bit for bit.
         """
         stop = start + fit.slow_bins.size
         system_exponent = y_exponent - u_exponent
-        if targets is None:
-            targets = fast_grid_targets(start, stop, N, F)
-        fast, slow, band, mirrored = targets
-        n_u = self.frf.shape[1]
-        b = np.arange(n_u)[:, None] * F + band  # (n_u, T): input i's band
-        self.frf[o][:, fast] = scale_by_power_of_two(
-            _conj_where(fit.system[slow, b], mirrored), system_exponent
-        )
-        # std from the normalised variance: its square may leave the float
-        # range
-        self.std[o][:, fast] = scale_by_power_of_two(
-            np.sqrt(fit.system_var[slow, b]), system_exponent
-        )
-        self.cov[o][:, :, fast] = scale_by_power_of_two(
-            _conj_where(fit.system_cov[slow, b[:, None], b[None, :]], mirrored),
-            2 * system_exponent,
-        )
-        self.valid[o][:, fast] = fit.well_posed[slow]
+        if runs is None:
+            runs = _fast_grid_runs(start, stop, N, F)
+        frf, std, cov, valid = self.frf[o], self.std[o], self.cov[o], self.valid[o]
+        for f, k0, k1, j0, mirrored in runs:
+            j1 = j0 + k1 - k0
+            order = slice(k1 - 1, k0 - 1 if k0 else None, -1) if mirrored else \
+                slice(k0, k1)
+            # band f of every input: columns i F + f, (T, n_u) -> (n_u, T)
+            target = frf[:, j0:j1]
+            target[...] = fit.system[order, f::F].T
+            _conj_scale(target, mirrored, system_exponent)
+            # std from the normalised variance: its square may leave the
+            # float range
+            target = std[:, j0:j1]
+            np.sqrt(fit.system_var[order, f::F].T, out=target)
+            _conj_scale(target, False, system_exponent)
+            target = cov[:, :, j0:j1]
+            target[...] = fit.system_cov[order, f::F, f::F].transpose(1, 2, 0)
+            _conj_scale(target, mirrored, 2 * system_exponent)
+            valid[:, j0:j1] = fit.well_posed[order]
         self.noise[o, start:stop] = scale_by_power_of_two(
             fit.noise_var, 2 * y_exponent
         )
@@ -755,9 +761,19 @@ class _FittedArrays:
         )
 
 
-def _conj_where(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """``values`` (a new array) conjugated where ``mask``."""
-    return np.where(mask, np.conj(values), values)
+def _conj_scale(values: np.ndarray, conj: bool, exponent: int) -> None:
+    """``values`` conjugated (if ``conj``) and times ``2**exponent``, in
+    place: the operations of :func:`lrmfrf.local_models.scale_by_power_of_two`
+    (exact) without its new array."""
+    if conj:
+        np.conjugate(values, out=values)
+    if exponent:
+        with np.errstate(over="ignore", under="ignore"):
+            if np.iscomplexobj(values):
+                np.ldexp(values.real, exponent, out=values.real)
+                np.ldexp(values.imag, exponent, out=values.imag)
+            else:
+                np.ldexp(values, exponent, out=values)
 
 
 @dataclass
