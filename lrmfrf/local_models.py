@@ -931,6 +931,9 @@ def _iter_fit_rows(
     ------
     start : int
     fits : list of LocalModelFit
+        One per row of ``outputs``. With ``eiv=True`` their ``system_var`` and
+        ``system_cov`` are None: the caller replaces Lemma 2's band terms by
+        the errors-in-variables ones (:mod:`lrmfrf.uncertainty`).
     extra : tuple or None
         ``(U, Y, bins, raws, theta)`` with ``eiv=True``: the chunk's spectra
         (inputs scaled by ``2**-u_exponent``, each output row by its own
