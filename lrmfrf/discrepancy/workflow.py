@@ -175,7 +175,12 @@ def diagnose(
     smoothing_bins = renamed_keyword(smoothing_bins, window, new="smoothing_bins",
                                      old="window", default=9)
     records = check_records(u_h, y_l, F)
-    u, y = records.siso_stacks("diagnose")  # (P, N), (P, M) stacks
+    # SISO: (P, N) and (P, M) stacks, responses (K,); MIMO: (P, n_u, N) and
+    # (P, n_y, M), responses (n_y, n_u, K). The layers below follow the shape.
+    shape = (records.n_outputs, records.n_inputs)
+    entry_shape = () if records.is_siso else shape
+    u, y = (records.u[:, 0], records.y[:, 0]) if records.is_siso else (
+        records.u, records.y)
     F = records.F
     sample_time, source = resolve_sample_time(sample_time, plant, controller)
     settings = check_settings(
@@ -186,10 +191,12 @@ def diagnose(
     steady_state = check_bool(steady_state, "steady_state")
     catalogue = check_catalogue(effects)
     rng = check_rng(rng)
-    nominal, controller = check_models(plant, controller, sample_time, source)
+    nominal, controller = check_models(plant, controller, sample_time, source,
+                                       shape)
     band = check_band(band)
     fitted, template = fit_estimator(estimator, u, y, F, sample_time)
-    problem, bins = comparison_problem(fitted, band, controller, sample_time)
+    problem, bins = comparison_problem(fitted, band, controller, sample_time,
+                                       entry_shape)
     # the section the fits inside count themselves into (shared with other threads)
     with single_threaded_blas():
         calibrator = Calibrator(template, fitted, u, F, sample_time, bins, controller,
@@ -197,6 +204,6 @@ def diagnose(
                                 settings.smoothing_bins, rng,
                                 steady_state=steady_state)
         cal0 = calibration if calibration is not None else calibrator(nominal)
-        check_calibration(cal0, bins.size)
+        check_calibration(cal0, bins.size, entry_shape)
         return run_search(problem, nominal, catalogue, calibrator, cal0, settings,
                           controller=controller, F=F)
