@@ -389,6 +389,7 @@ class ModeShift(Effect):
             ModeShift(target=mode, max_shift=self.max_shift)
             for mode in context.resonances
             if mode.frequency < context.nyquist
+            and not _repeated(mode, context.resonances)
         ]
 
     def label(self):
@@ -599,6 +600,17 @@ def _separate_mode(plant: ContinuousPlant, frequency: float, damping: float):
     B1, C1 = B[:2], C[:, :2]
     rest = plant.with_(A=A22, B=B[2:], C=C[:, 2:])
     return rest, A11, B1, C1
+
+
+def _repeated(mode: Resonance, modes: list) -> bool:
+    """Another pole pair at the same place (e.g. a symmetric suspension of a
+    MIMO stage): the mode cannot be isolated and moved on its own."""
+    return any(
+        other.index != mode.index
+        and abs(other.frequency - mode.frequency) <= 1e-6 * mode.frequency
+        and abs(other.damping - mode.damping) <= 1e-6 * max(mode.damping, 1e-12)
+        for other in modes
+    )
 
 
 def _spectrum_peaks(spectrum: np.ndarray, count: int) -> list[int]:
