@@ -193,6 +193,7 @@ def mimo_hidden_effect_experiment(
     rms: float = 1.44,
     snr_db: float = 40.0,
     steady_state: bool | None = None,
+    excitation: str | None = None,
 ) -> HiddenExperiment:
     """Simulate ONE experiment of a 2x2 stage with hidden effect(s).
 
@@ -211,6 +212,12 @@ def mimo_hidden_effect_experiment(
         Output SNR of each output in dB.
     steady_state : bool, optional
         Record the periodic steady state; default: in open loop.
+    excitation : {"flat", "shaped"}, optional
+        ``"shaped"``: input ``j`` has amplitudes ``1 / |P_nom,jj(k)|`` (a
+        flat nominal output spectrum on its own channel; as
+        :func:`.hidden.hidden_effect_experiment` in open loop, where a flat
+        force gives no SNR above the suspension). Default: shaped in open
+        loop, flat in closed loop.
 
     Returns
     -------
@@ -237,7 +244,19 @@ def mimo_hidden_effect_experiment(
         raise RuntimeError("the hidden effect made the closed loop unstable.")
     if steady_state is None:
         steady_state = controller is None
-    u = np.stack([multisine(n_samples, rms=rms, rng=rng) for _ in range(2)])
+    if excitation is None:
+        excitation = "shaped" if controller is None else "flat"
+    if excitation not in ("flat", "shaped"):
+        raise ValueError(f"`excitation` must be 'flat' or 'shaped'; got {excitation!r}.")
+    amplitudes = [None, None]
+    if excitation == "shaped":
+        z = np.exp(2j * np.pi * np.arange(n_samples // 2 + 1) / n_samples)
+        nominal = stage.plant(z)  # (2, 2, N//2 + 1)
+        for j in range(2):
+            size = np.abs(nominal[j, j])
+            amplitudes[j] = 1.0 / np.maximum(size, 1e-6 * size.max())
+    u = np.stack([multisine(n_samples, rms=rms, rng=rng, amplitude=amplitudes[j])
+                  for j in range(2)])
     x0 = periodic_state(system, u) if steady_state else None
     sim = simulate(system, u, stage.downsampling_factor, snr_db=snr_db, rng=rng, x0=x0)
     return HiddenExperiment(
