@@ -212,3 +212,22 @@ def test_catalogue_effects_are_the_mimo_ones(stage):
     shifts = ModeShift().expand(context)
     assert {round(s.target.frequency) for s in shifts} == {
         round(m.frequency_hz) for m in stage.modes}
+
+
+def test_report_of_a_mimo_diagnosis(stage):
+    import json
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    experiment = mimo_hidden_effect_experiment(None, stage=stage, rng=7)
+    report = _diagnose(experiment, calibration_runs=2, debias_rounds=0)
+    assert report.std.shape == report.measured.shape == report.model_after.shape
+    assert report.spectrum_before.shape == report.frequencies.shape
+    data = json.loads(json.dumps(report.to_dict()))
+    assert data["calibration"]["n_entries"] == 4
+    assert "gap" in report.summary()
+    fig, axes = report.plot(entry=(1, 0))
+    assert "entry y1/u0" in axes[0].get_title()
+    with pytest.raises(ValueError, match="within \\(2, 2\\)"):
+        report.plot(entry=(2, 0))
