@@ -44,7 +44,8 @@ from the two corners, the plate's modes with a shape there; closed loop: a
 diagonal lead-PID; open loop: suspended at 5 Hz). ONE experiment: two
 uncorrelated random-phase multisines, one per input, applied together (not
 orthogonal experiments), N = 1200, 40 dB on each output; open loop shaped to
-the nominal diagonal and in steady state. Gain, delay and low-pass act on both
+the nominal diagonal and in steady state (``--mimo-excitation shaped`` shapes
+the closed-loop records to the nominal closed loop's diagonal too). Gain, delay and low-pass act on both
 inputs alike; a missing mode has a drawn 2x2 rank-one shape
 (:mod:`lrmfrf.discrepancy.hidden_mimo`). ``diagnose`` gets the nominal 2x2
 plant and the 2x2 controller (``None`` in open loop).
@@ -117,7 +118,7 @@ def run_record(job: tuple) -> dict:
                                  downsampling_factor=draw.downsampling_factor)
         experiment = mimo_hidden_effect_experiment(
             None if effect == "none" else effect, stage=stage, rng=record_seed,
-            snr_db=snr_db)
+            snr_db=snr_db, excitation=open_experiment.get("excitation"))
         open_experiment = {"steady_state": True}
     else:
         stage, draw = random_stage(seed, loop=loop)
@@ -164,7 +165,8 @@ def diagnose_table(seeds, *, loops=LOOPS, effects=EFFECTS, snr_db: float = 40.0,
                    n_experiments: int = 1, calibration_runs: int = 10,
                    workers: int = 1, options: dict | None = None,
                    null_repeats: int = 3, open_flat: bool = False,
-                   mimo: bool = False) -> list[dict]:
+                   mimo: bool = False,
+                   mimo_excitation: str | None = None) -> list[dict]:
     """Diagnose hidden-effect records on random stages; one row per record.
 
     Parameters
@@ -194,6 +196,9 @@ def diagnose_table(seeds, *, loops=LOOPS, effects=EFFECTS, snr_db: float = 40.0,
         processes see it whatever their start method).
     mimo : bool, default False
         2x2 stages (module docstring; ``n_experiments`` must be 1).
+    mimo_excitation : {"flat", "shaped"}, optional
+        2x2 records' excitation; default flat in closed loop, shaped to the
+        nominal diagonal in open loop.
 
     Returns
     -------
@@ -206,7 +211,7 @@ def diagnose_table(seeds, *, loops=LOOPS, effects=EFFECTS, snr_db: float = 40.0,
         raise ValueError(f"`null_repeats` must be in 1..4; got {null_repeats}.")
     if mimo and n_experiments != 1:
         raise ValueError("--mimo simulates ONE experiment per record (issue 15).")
-    experiment = {"mimo": True} if mimo else (
+    experiment = {"mimo": True, "excitation": mimo_excitation} if mimo else (
         {} if open_flat else dict(OPEN_LOOP_EXPERIMENT))
     jobs = [(int(seed), loop, effect, repeat, snr_db, n_experiments,
              calibration_runs, dict(options or {}), experiment)
@@ -312,6 +317,9 @@ def main(argv=None) -> list[dict]:
                         help="open loop: a flat force from rest (the old records)")
     parser.add_argument("--mimo", action="store_true",
                         help="2x2 stages cut from random four-corner plates")
+    parser.add_argument("--mimo-excitation", choices=("flat", "shaped"),
+                        default=None,
+                        help="2x2 excitation (default: flat closed, shaped open)")
     parser.add_argument("--out", default=None,
                         help="CSV (default benchmarks/results/"
                              "generalisation_diagnose[_mimo].csv)")
@@ -325,7 +333,8 @@ def main(argv=None) -> list[dict]:
                           snr_db=args.snr, n_experiments=args.experiments,
                           calibration_runs=args.calibration_runs,
                           workers=args.workers, null_repeats=args.null_repeats,
-                          open_flat=args.open_flat, mimo=args.mimo)
+                          open_flat=args.open_flat, mimo=args.mimo,
+                          mimo_excitation=args.mimo_excitation)
     print(f"{len(rows)} records on {len(seeds)} {'2x2 ' if args.mimo else ''}"
           f"stages (seeds {args.seeds}) in "
           f"{time.perf_counter() - start:.0f} s; SNR {args.snr:g} dB, "

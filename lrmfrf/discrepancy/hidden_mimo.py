@@ -213,8 +213,9 @@ def mimo_hidden_effect_experiment(
     steady_state : bool, optional
         Record the periodic steady state; default: in open loop.
     excitation : {"flat", "shaped"}, optional
-        ``"shaped"``: input ``j`` has amplitudes ``1 / |P_nom,jj(k)|`` (a
-        flat nominal output spectrum on its own channel; as
+        ``"shaped"``: input ``j`` has amplitudes ``1 / |G_nom,jj(k)|`` of the
+        nominal measured system (the plant in open loop, the closed loop
+        otherwise: a flat nominal output spectrum on its own channel; as
         :func:`.hidden.hidden_effect_experiment` in open loop, where a flat
         force gives no SNR above the suspension). Default: shaped in open
         loop, flat in closed loop.
@@ -251,10 +252,15 @@ def mimo_hidden_effect_experiment(
     amplitudes = [None, None]
     if excitation == "shaped":
         z = np.exp(2j * np.pi * np.arange(n_samples // 2 + 1) / n_samples)
-        nominal = stage.plant(z)  # (2, 2, N//2 + 1)
+        nominal_system = stage.plant if controller is None else control.feedback(
+            stage.plant, controller, sign=-1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            nominal = nominal_system(z)  # (2, 2, N//2 + 1)
         for j in range(2):
             size = np.abs(nominal[j, j])
-            amplitudes[j] = 1.0 / np.maximum(size, 1e-6 * size.max())
+            top = np.max(size[np.isfinite(size)])
+            size = np.where(np.isfinite(size), size, top)
+            amplitudes[j] = 1.0 / np.maximum(size, 1e-6 * top)
     u = np.stack([multisine(n_samples, rms=rms, rng=rng, amplitude=amplitudes[j])
                   for j in range(2)])
     x0 = periodic_state(system, u) if steady_state else None
