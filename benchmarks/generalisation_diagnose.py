@@ -36,11 +36,26 @@ then has a median relative error (over bins) of 4-17 at 40 dB on seeds 1000,
 ``gap_before >= 3``); shaped and in steady state it is 0.5-1.1 %.
 Tuning seeds 1000-1019, held-out seeds 2000-2019 (``--seeds``).
 
+``--mimo``: the same on 2x2 stages. For each seed,
+``random_stage(seed, mimo=True)`` draws a four-corner plate (its own ``F``);
+corners 1 and 2 make the 2x2 stage
+(:func:`lrmfrf.discrepancy.hidden_mimo.two_by_two_stage`: the rigid body seen
+from the two corners, the plate's modes with a shape there; closed loop: a
+diagonal lead-PID; open loop: suspended at 5 Hz). ONE experiment: two
+uncorrelated random-phase multisines, one per input, applied together (not
+orthogonal experiments), N = 1200, 40 dB on each output; open loop shaped to
+the nominal diagonal and in steady state (``--mimo-excitation shaped`` shapes
+the closed-loop records to the nominal closed loop's diagonal too). Gain, delay and low-pass act on both
+inputs alike; a missing mode has a drawn 2x2 rank-one shape
+(:mod:`lrmfrf.discrepancy.hidden_mimo`). ``diagnose`` gets the nominal 2x2
+plant and the 2x2 controller (``None`` in open loop).
+
 Usage::
 
     python benchmarks/generalisation_diagnose.py --seeds 1000-1019
     python benchmarks/generalisation_diagnose.py --seeds 2000-2019 --workers 2
     python benchmarks/generalisation_diagnose.py --seeds 1000-1003 --loops open
+    python benchmarks/generalisation_diagnose.py --mimo --seeds 1000-1004
 
 Writes ``benchmarks/results/generalisation_diagnose.csv`` (one row per record).
 """
@@ -90,15 +105,29 @@ def run_record(job: tuple) -> dict:
     from lrmfrf.plants import random_stage
 
     start = time.perf_counter()
-    stage, draw = random_stage(seed, loop=loop)
     record_seed = (seed * 100 + EFFECTS.index(effect) + 10 * repeat
                    + (50 if loop == "open" else 0))
-    experiment = hidden_effect_experiment(
-        None if effect == "none" else effect, rng=record_seed, stage=stage,
-        loop=loop, F=draw.downsampling_factor, snr_db=snr_db,
-        n_experiments=n_experiments, min_gap=0.0,
-        **(open_experiment if loop == "open" else {}),
-    )
+    if open_experiment.get("mimo"):
+        from lrmfrf.discrepancy.hidden_mimo import (
+            mimo_hidden_effect_experiment,
+            two_by_two_stage,
+        )
+
+        plate, draw = random_stage(seed, mimo=True)
+        stage = two_by_two_stage(plate, loop=loop,
+                                 downsampling_factor=draw.downsampling_factor)
+        experiment = mimo_hidden_effect_experiment(
+            None if effect == "none" else effect, stage=stage, rng=record_seed,
+            snr_db=snr_db, excitation=open_experiment.get("excitation"))
+        open_experiment = {"steady_state": True}
+    else:
+        stage, draw = random_stage(seed, loop=loop)
+        experiment = hidden_effect_experiment(
+            None if effect == "none" else effect, rng=record_seed, stage=stage,
+            loop=loop, F=draw.downsampling_factor, snr_db=snr_db,
+            n_experiments=n_experiments, min_gap=0.0,
+            **(open_experiment if loop == "open" else {}),
+        )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:
@@ -135,7 +164,9 @@ def run_record(job: tuple) -> dict:
 def diagnose_table(seeds, *, loops=LOOPS, effects=EFFECTS, snr_db: float = 40.0,
                    n_experiments: int = 1, calibration_runs: int = 10,
                    workers: int = 1, options: dict | None = None,
-                   null_repeats: int = 3, open_flat: bool = False) -> list[dict]:
+                   null_repeats: int = 3, open_flat: bool = False,
+                   mimo: bool = False,
+                   mimo_excitation: str | None = None) -> list[dict]:
     """Diagnose hidden-effect records on random stages; one row per record.
 
     Parameters
@@ -163,6 +194,11 @@ def diagnose_table(seeds, *, loops=LOOPS, effects=EFFECTS, snr_db: float = 40.0,
         Open-loop records with a flat force from rest instead of
         :data:`OPEN_LOOP_EXPERIMENT` (passed with each job, so that worker
         processes see it whatever their start method).
+    mimo : bool, default False
+        2x2 stages (module docstring; ``n_experiments`` must be 1).
+    mimo_excitation : {"flat", "shaped"}, optional
+        2x2 records' excitation; default flat in closed loop, shaped to the
+        nominal diagonal in open loop.
 
     Returns
     -------
@@ -173,9 +209,12 @@ def diagnose_table(seeds, *, loops=LOOPS, effects=EFFECTS, snr_db: float = 40.0,
     """
     if not 1 <= null_repeats <= 4:
         raise ValueError(f"`null_repeats` must be in 1..4; got {null_repeats}.")
+    if mimo and n_experiments != 1:
+        raise ValueError("--mimo simulates ONE experiment per record (issue 15).")
+    experiment = {"mimo": True, "excitation": mimo_excitation} if mimo else (
+        {} if open_flat else dict(OPEN_LOOP_EXPERIMENT))
     jobs = [(int(seed), loop, effect, repeat, snr_db, n_experiments,
-             calibration_runs, dict(options or {}),
-             {} if open_flat else dict(OPEN_LOOP_EXPERIMENT))
+             calibration_runs, dict(options or {}), experiment)
             for seed in seeds for loop in loops for effect in effects
             for repeat in range(null_repeats if effect == "none" else 1)]
     if workers > 1:
@@ -276,17 +315,28 @@ def main(argv=None) -> list[dict]:
                         help="records with nothing hidden per stage and loop")
     parser.add_argument("--open-flat", action="store_true",
                         help="open loop: a flat force from rest (the old records)")
-    parser.add_argument("--out",
-                        default="benchmarks/results/generalisation_diagnose.csv")
+    parser.add_argument("--mimo", action="store_true",
+                        help="2x2 stages cut from random four-corner plates")
+    parser.add_argument("--mimo-excitation", choices=("flat", "shaped"),
+                        default=None,
+                        help="2x2 excitation (default: flat closed, shaped open)")
+    parser.add_argument("--out", default=None,
+                        help="CSV (default benchmarks/results/"
+                             "generalisation_diagnose[_mimo].csv)")
     args = parser.parse_args(argv)
+    if args.out is None:
+        args.out = ("benchmarks/results/generalisation_diagnose"
+                    + ("_mimo" if args.mimo else "") + ".csv")
     seeds = parse_seeds(args.seeds)
     start = time.perf_counter()
     rows = diagnose_table(seeds, loops=args.loops, effects=args.effects,
                           snr_db=args.snr, n_experiments=args.experiments,
                           calibration_runs=args.calibration_runs,
                           workers=args.workers, null_repeats=args.null_repeats,
-                          open_flat=args.open_flat)
-    print(f"{len(rows)} records on {len(seeds)} stages (seeds {args.seeds}) in "
+                          open_flat=args.open_flat, mimo=args.mimo,
+                          mimo_excitation=args.mimo_excitation)
+    print(f"{len(rows)} records on {len(seeds)} {'2x2 ' if args.mimo else ''}"
+          f"stages (seeds {args.seeds}) in "
           f"{time.perf_counter() - start:.0f} s; SNR {args.snr:g} dB, "
           f"P = {args.experiments}, {args.calibration_runs} calibration runs")
     print_table(summarise(rows))

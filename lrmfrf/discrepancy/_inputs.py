@@ -88,41 +88,48 @@ def check_catalogue(effects) -> list[Effect]:
     return catalogue
 
 
-def check_models(plant, controller, sample_time: float, source: str):
+def check_models(plant, controller, sample_time: float, source: str,
+                 shape: tuple = (1, 1)):
     """The plant as a :class:`ContinuousPlant` and the controller as state space.
 
-    Raises if the closed loop of the given plant and controller is unstable
-    (it cannot then be the measured system).
+    ``shape`` is the data's ``(n_y, n_u)``: the plant must have it, the
+    controller the transposed one. Raises if the closed loop of the given
+    plant and controller is unstable (it cannot then be the measured system).
     """
-    nominal = as_continuous_plant(plant, sample_time)
-    controller = check_controller(controller, sample_time, source)
+    nominal = as_continuous_plant(plant, sample_time, shape=shape)
+    controller = check_controller(controller, sample_time, source, shape)
     measured_system(nominal, controller, sample_time)  # stability check
     return nominal, controller
 
 
-def comparison_problem(fitted, band, controller, sample_time: float):
-    """The :class:`FitProblem` on the usable bins, and those bins."""
-    bins = usable_bins(fitted, band)
+def comparison_problem(fitted, band, controller, sample_time: float,
+                       entry_shape: tuple = ()):
+    """The :class:`FitProblem` on the usable bins, and those bins.
+
+    ``entry_shape`` is ``()`` for SISO, ``(n_y, n_u)`` for MIMO.
+    """
+    bins = usable_bins(fitted, band, entry_shape)
     frequencies = np.asarray(fitted.frequencies_, dtype=float)[bins]
     controller_frf = (
         None if controller is None
         else frequency_response(controller, frequencies, sample_time)
     )
+    shape = tuple(entry_shape) + (bins.size,)
     problem = FitProblem(
         frequencies=frequencies,
-        measured=np.asarray(fitted.frf_)[bins],
-        std=np.asarray(fitted.frf_std_)[bins],
+        measured=np.asarray(fitted.frf_)[..., bins],
+        std=np.asarray(fitted.frf_std_)[..., bins],
         sample_time=sample_time,
         controller=controller_frf,
-        bias=np.zeros(bins.size, complex),
-        scale=np.ones(bins.size),
+        bias=np.zeros(shape, complex),
+        scale=np.ones(shape),
         inflation=1.0,
     )
     return problem, bins
 
 
 def closed_loop(plant: ContinuousPlant, controller, sample_time: float):
-    """Discrete closed loop ``P (1 + C P)^-1`` and its largest pole magnitude."""
+    """Discrete closed loop ``P (I + C P)^-1`` and its largest pole magnitude."""
     discrete = to_discrete_ss(plant, sample_time)
     loop = control.feedback(discrete, control.ss(controller), sign=-1)
     radius = float(np.max(np.abs(np.linalg.eigvals(loop.A)))) if loop.nstates else 0.0
@@ -146,10 +153,12 @@ def measured_system(plant: ContinuousPlant, controller, sample_time: float):
 def fit_estimator(estimator, u, y, F, sample_time):
     """The fitted estimator (fitted here unless it already is) and a template.
 
-    The template is an unfitted clone, refitted by the calibration runs.
+    ``u`` (P, N) or (P, n_u, N), ``y`` (P, M) or (P, n_y, M). The template is
+    an unfitted clone, refitted by the calibration runs.
     """
+    n_inputs = u.shape[1] if u.ndim == 3 else 1
     if estimator is None:
-        estimator = default_estimator(F, u.shape[0], u.shape[1] // F)
+        estimator = default_estimator(F, u.shape[0], u.shape[-1] // F, n_inputs)
     if not hasattr(estimator, "fit"):
         raise TypeError(
             "`estimator` must be an FRF estimator with fit(u_h, y_l, F, *, "
@@ -157,7 +166,7 @@ def fit_estimator(estimator, u, y, F, sample_time):
         )
     template = clone(estimator)
     if hasattr(estimator, "frf_"):
-        N = u.shape[1]
+        N = u.shape[-1]
         if getattr(estimator, "n_samples_", N) != N or getattr(
             estimator, "downsampling_factor_", F
         ) != F:
@@ -187,7 +196,7 @@ def fit_estimator(estimator, u, y, F, sample_time):
     return fitted, template
 
 
-def default_estimator(F: int, n_experiments: int, n_slow: int):
+def default_estimator(F: int, n_experiments: int, n_slow: int, n_inputs: int = 1):
     """``LRMBeyondNyquist()`` with a half window that leaves enough dof.
 
     The default half window (18) leaves ``P (2n + 1) - n_params`` residual
@@ -209,6 +218,7 @@ def default_estimator(F: int, n_experiments: int, n_slow: int):
             F=F, half_window=n, num_degree=params["num_degree"],
             transient_degree=params["transient_degree"],
             den_degree=params["den_degree"], n_experiments=n_experiments,
+            n_inputs=n_inputs,
         ).dof
 
     while dof(half_window) < MIN_DEFAULT_DOF and 2 * (half_window + 1) + 1 <= n_slow:
@@ -216,19 +226,27 @@ def default_estimator(F: int, n_experiments: int, n_slow: int):
     return estimator.set_params(half_window=half_window)
 
 
-def usable_bins(fitted, band) -> np.ndarray:
-    """Indices of the bins in ``band`` with a valid, finite FRF and std > 0."""
+def usable_bins(fitted, band, entry_shape: tuple = ()) -> np.ndarray:
+    """Indices of the bins in ``band`` with a valid, finite FRF and std > 0.
+
+    ``entry_shape`` is ``(n_y, n_u)`` for a MIMO measurement (``frf_`` of
+    shape ``(n_y, n_u, K)``): a bin is used when every entry is usable.
+    """
     frf = np.asarray(fitted.frf_)
     std = np.asarray(fitted.frf_std_)
     freqs = np.asarray(fitted.frequencies_, dtype=float)
     valid = np.asarray(getattr(fitted, "valid_", np.ones(frf.shape, bool)), bool)
-    if frf.ndim != 1 or std.shape != frf.shape or freqs.shape != frf.shape:
+    expected = tuple(entry_shape) + freqs.shape
+    if freqs.ndim != 1 or frf.shape != expected or std.shape != expected:
+        what = "1-D arrays of one length" if not entry_shape else (
+            f"of shape {expected} (frequencies_ of shape {freqs.shape})")
         raise ValueError(
-            "the estimator's frequencies_, frf_ and frf_std_ must be 1-D arrays of "
-            f"one length. Got shapes {freqs.shape}, {frf.shape} and {std.shape}."
+            f"the estimator's frequencies_, frf_ and frf_std_ must be {what}. "
+            f"Got shapes {freqs.shape}, {frf.shape} and {std.shape}."
         )
     inside = (freqs > 0) & (freqs >= band[0]) & (freqs <= band[1])
-    good = inside & valid & np.isfinite(frf) & np.isfinite(std) & (std > 0)
+    good = valid & np.isfinite(frf) & np.isfinite(std) & (std > 0)
+    good = inside & good.reshape(-1, freqs.size).all(axis=0)
     n_inside = int(np.count_nonzero(inside))
     n_bad = n_inside - int(np.count_nonzero(good))
     if n_bad:
@@ -275,8 +293,9 @@ def resolve_sample_time(sample_time, plant, controller) -> tuple[float, str]:
     if sample_time is not None:
         value = check_sample_time(sample_time)
         return value, f"sample_time={value!r} s"
-    check_siso_system(plant, "`plant`", discrete=False,
-                      hint="stage.plant[0, 0] for y4")
+    if not isinstance(plant, control.LTI):
+        check_siso_system(plant, "`plant`", discrete=False,
+                          hint="stage.plant[0, 0] for y4")  # the type message
     for model, name in ((plant, "`plant`"), (controller, "`controller`")):
         if model is None or not isinstance(model, control.LTI):
             continue
@@ -291,14 +310,19 @@ def resolve_sample_time(sample_time, plant, controller) -> tuple[float, str]:
     )
 
 
-def check_controller(controller, sample_time, source):
+def check_controller(controller, sample_time, source, shape=(1, 1)):
     """The controller as discrete state space at ``sample_time`` (or None).
 
-    ``source`` says where the sample time came from, for the message.
+    ``source`` says where the sample time came from, for the message;
+    ``shape`` is the plant's ``(n_y, n_u)`` (the controller maps the ``n_y``
+    outputs to the ``n_u`` inputs).
     """
     if controller is None:
         return None
-    check_siso_system(controller, "`controller`", discrete=False)
+    if tuple(shape) == (1, 1):
+        check_siso_system(controller, "`controller`", discrete=False)
+    else:
+        _check_controller_shape(controller, shape)
     if not control.isdtime(controller, strict=True):
         raise ValueError(
             "`controller` must be discrete with dt == sample_time. Got "
@@ -313,15 +337,38 @@ def check_controller(controller, sample_time, source):
     return control.ss(controller)
 
 
-def check_calibration(cal, n_bins):
-    """Check a reused calibration against the number of compared bins."""
+def _check_controller_shape(controller, shape):
+    """A MIMO controller must have ``n_y`` inputs and ``n_u`` outputs."""
+    if not isinstance(controller, (control.StateSpace, control.TransferFunction)):
+        raise TypeError(
+            "`controller` must be a control.StateSpace or TransferFunction "
+            f"(python-control StateSpace); got {type(controller).__name__}."
+        )
+    n_y, n_u = shape
+    if (controller.noutputs, controller.ninputs) != (n_u, n_y):
+        raise ValueError(
+            f"`controller` has {controller.noutputs} output(s) and "
+            f"{controller.ninputs} input(s); with {n_y} plant output(s) and "
+            f"{n_u} input(s) it must have {n_u} outputs and {n_y} inputs "
+            "(u = r - C y)."
+        )
+
+
+def check_calibration(cal, n_bins, entry_shape: tuple = ()):
+    """Check a reused calibration against the compared bins (and entries)."""
     if not isinstance(cal, Calibration):
         raise TypeError(
             "`calibration` must be a Calibration from an earlier report "
             f"(report.calibration). Got {type(cal).__name__}."
         )
-    if cal.bias.shape != (n_bins,):
+    if cal.bias.shape[-1:] != (n_bins,):
         raise ValueError(
-            f"`calibration` was made for {cal.bias.shape[0]} bins, these data have "
+            f"`calibration` was made for {cal.bias.shape[-1]} bins, these data have "
             f"{n_bins}. Reuse a calibration only with the same inputs and estimator."
+        )
+    if cal.bias.shape[:-1] != tuple(entry_shape):
+        raise ValueError(
+            f"`calibration` was made for FRF entries of shape {cal.bias.shape[:-1]}, "
+            f"these data have {tuple(entry_shape)}. Reuse a calibration only with "
+            "the same inputs, outputs and estimator."
         )

@@ -2,9 +2,11 @@
 
 The discrepancy workflow names effects in continuous time (a delay in seconds,
 a cutoff and a mode in Hz) and compares models with a measured FRF on the fast
-DFT grid. A model is a SISO :class:`ContinuousPlant` (state space plus an input
-delay); it is turned into the discrete model the data see by an exact
-zero-order-hold discretisation, fractional delays included.
+DFT grid. A model is a :class:`ContinuousPlant` (state space plus an input
+delay, the same on every input channel; SISO or MIMO); it is turned into the
+discrete model the data see by an exact zero-order-hold discretisation,
+fractional delays included. Responses of a SISO model have shape ``(K,)``, of
+a MIMO one ``(n_y, n_u, K)`` (python-control's layout).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ __all__ = [
     "ContinuousPlant",
     "Resonance",
     "as_continuous_plant",
+    "check_system_shape",
     "discrete_response",
     "frequency_response",
     "resonances",
@@ -32,14 +35,14 @@ __all__ = [
 
 @dataclass(frozen=True)
 class ContinuousPlant:
-    """SISO continuous state-space model ``y = C x + D u(t - delay)``.
+    """Continuous state-space model ``y = C x + D u(t - delay)``.
 
     Attributes
     ----------
     A, B, C, D : ndarray
-        Shapes (n, n), (n, 1), (1, n), (1, 1); time in seconds.
+        Shapes (n, n), (n, n_u), (n_y, n), (n_y, n_u); time in seconds.
     delay : float
-        Input delay in seconds, >= 0.
+        Input delay in seconds, >= 0, the same on every input channel.
     """
 
     A: np.ndarray
@@ -52,6 +55,19 @@ class ContinuousPlant:
     @property
     def n_states(self) -> int:
         return self.A.shape[0]
+
+    @property
+    def n_inputs(self) -> int:
+        return self.B.shape[1]
+
+    @property
+    def n_outputs(self) -> int:
+        return self.C.shape[0]
+
+    @property
+    def is_siso(self) -> bool:
+        """One input and one output: responses have shape ``(K,)``."""
+        return self.n_inputs == 1 and self.n_outputs == 1
 
     def with_(self, **changes) -> ContinuousPlant:
         values = {
@@ -81,8 +97,9 @@ class Resonance:
     index: int
 
 
-def as_continuous_plant(plant, sample_time: float) -> ContinuousPlant:
-    """Convert a SISO python-control model to a :class:`ContinuousPlant`.
+def as_continuous_plant(plant, sample_time: float, *,
+                        shape: tuple | None = None) -> ContinuousPlant:
+    """Convert a python-control model to a :class:`ContinuousPlant`.
 
     A continuous model is used as is. A discrete model must have
     ``dt == sample_time``; it is taken to be the zero-order-hold
@@ -92,9 +109,12 @@ def as_continuous_plant(plant, sample_time: float) -> ContinuousPlant:
     Parameters
     ----------
     plant : control.StateSpace or control.TransferFunction
-        SISO model of the plant.
+        Model of the plant.
     sample_time : float
         Fast sample time in seconds.
+    shape : (int, int), optional
+        ``(n_y, n_u)`` the data have; default ``(1, 1)`` (SISO). A model
+        with other dimensions is an error that says so.
 
     Returns
     -------
@@ -105,15 +125,17 @@ def as_continuous_plant(plant, sample_time: float) -> ContinuousPlant:
     TypeError
         If ``plant`` is not a python-control LTI model.
     ValueError
-        If it is not SISO, its sample time differs from ``sample_time``, or it
-        has no continuous ZOH equivalent (a pole on the negative real axis).
+        If its dimensions are not ``shape`` (SISO by default), its sample time
+        differs from ``sample_time``, or it has no continuous ZOH equivalent
+        (a pole on the negative real axis).
     """
-    check_siso_system(plant, "`plant`", discrete=False, hint="stage.plant[0, 0] for y4")
+    check_system_shape(plant, "`plant`", shape, hint="stage.plant[0, 0] for y4")
     system = control.ss(plant)
+    n_y, n_u = system.noutputs, system.ninputs
     A = np.array(system.A, dtype=float)
-    B = np.array(system.B, dtype=float).reshape(-1, 1)
-    C = np.array(system.C, dtype=float).reshape(1, -1)
-    D = np.array(system.D, dtype=float).reshape(1, 1)
+    B = np.array(system.B, dtype=float).reshape(-1, n_u)
+    C = np.array(system.C, dtype=float).reshape(n_y, -1)
+    D = np.array(system.D, dtype=float).reshape(n_y, n_u)
     if control.isctime(system, strict=True) or system.dt == 0:
         return ContinuousPlant(A, B, C, D)
     if system.dt is None or system.dt is True:
@@ -130,6 +152,29 @@ def as_continuous_plant(plant, sample_time: float) -> ContinuousPlant:
     return _inverse_zoh(A, B, C, D, sample_time)
 
 
+def check_system_shape(system, name: str, shape: tuple | None, *, hint: str):
+    """Check ``system`` is a python-control model with ``shape == (n_y, n_u)``.
+
+    ``shape=None`` (or ``(1, 1)``) asks for a SISO model, with the SISO message
+    of :func:`lrmfrf._validation.check_siso_system`.
+    """
+    if shape is None or tuple(shape) == (1, 1):
+        return check_siso_system(system, name, discrete=False, hint=hint)
+    if not isinstance(system, (control.StateSpace, control.TransferFunction)):
+        raise TypeError(
+            f"{name} must be a control.StateSpace or TransferFunction (python-control "
+            f"StateSpace); got {type(system).__name__}. Build it with control.ss(...)."
+        )
+    if (system.noutputs, system.ninputs) != tuple(shape):
+        raise ValueError(
+            f"{name} has {system.noutputs} output(s) and {system.ninputs} input(s), "
+            f"but the records have {shape[0]} output and {shape[1]} input "
+            "channel(s). Pass a model with one output per row of y_l and one "
+            "input per row of u_h (e.g. stage.plant[0:2, 0:2])."
+        )
+    return system
+
+
 def _inverse_zoh(Phi, Gamma, C, D, sample_time) -> ContinuousPlant:
     n = Phi.shape[0]
     if n == 0:
@@ -142,10 +187,11 @@ def _inverse_zoh(Phi, Gamma, C, D, sample_time) -> ContinuousPlant:
             f"(z = {eig[bad][0].real:.4g}); it is not the zero-order-hold "
             "discretisation of a continuous model. Pass the continuous model instead."
         )
-    augmented = np.zeros((n + 1, n + 1))
+    m = Gamma.shape[1]
+    augmented = np.zeros((n + m, n + m))
     augmented[:n, :n] = Phi
     augmented[:n, n:] = Gamma
-    augmented[n, n] = 1.0
+    augmented[n:, n:] = np.eye(m)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         log = scipy.linalg.logm(augmented)
@@ -179,8 +225,10 @@ def _zoh_delay_matrices(plant: ContinuousPlant, sample_time: float):
     if frac < 1e-12 * sample_time:
         frac = 0.0
 
+    m = plant.n_inputs
+
     def integral(h):  # (exp(A h), int_0^h exp(A s) ds B)
-        aug = np.zeros((n + 1, n + 1))
+        aug = np.zeros((n + m, n + m))
         aug[:n, :n] = plant.A * h
         aug[:n, n:] = plant.B * h
         e = scipy.linalg.expm(aug)
@@ -212,19 +260,24 @@ def discrete_response(
 
     Returns
     -------
-    ndarray of shape (K,), complex
+    ndarray of shape (K,) (SISO) or (n_y, n_u, K), complex
     """
     z = np.exp(2j * np.pi * np.asarray(frequencies, dtype=float) * sample_time)
     Phi, Gamma0, Gamma1, whole, has_frac = _zoh_delay_matrices(plant, sample_time)
     n = plant.n_states
     zinv = 1.0 / z
-    feed = plant.D[0, 0] * (zinv if has_frac else 1.0)
+    rows = plant.C  # (n_y, n): every output row at once
+    feed = plant.D[..., None] * (zinv if has_frac else 1.0)
     if n:
-        x0, x1 = _resolvent_apply(Phi, [Gamma0[:, 0], Gamma1[:, 0]], z, plant.C[0])
-        response = x0 + x1 * zinv + feed
+        m = plant.n_inputs
+        parts = _resolvent_apply(Phi, [*Gamma0.T, *Gamma1.T], z, rows)
+        responses = [x0 + x1 * zinv for x0, x1 in zip(parts[:m], parts[m:],
+                                                        strict=True)]
+        response = np.stack(responses, axis=-2) + feed  # (n_y, n_u, K)
     else:
-        response = np.broadcast_to(feed, z.shape).astype(complex)
-    return response * zinv**whole
+        response = np.broadcast_to(feed, plant.D.shape + z.shape).astype(complex)
+    response = response * zinv**whole
+    return response[0, 0] if plant.is_siso else response
 
 
 def _resolvent_apply(matrix, columns, points, row):
@@ -235,7 +288,7 @@ def _resolvent_apply(matrix, columns, points, row):
     """
     T, Q = scipy.linalg.schur(np.asarray(matrix, dtype=complex), output="complex")
     n = T.shape[0]
-    left = np.asarray(row, dtype=complex) @ Q
+    left = np.asarray(row, dtype=complex) @ Q  # (n,) or (n_rows, n)
     results = []
     for column in columns:
         acc = np.repeat((Q.conj().T @ np.asarray(column, dtype=complex))[:, None],
@@ -245,7 +298,7 @@ def _resolvent_apply(matrix, columns, points, row):
             acc[i] /= points - T[i, i]
             if i:
                 acc[:i] += T[:i, i, None] * acc[i]
-        results.append((left[:, None] * acc).sum(axis=0))
+        results.append((left[..., :, None] * acc).sum(axis=-2))
     return results
 
 
@@ -253,7 +306,8 @@ def frequency_response(system, frequencies: np.ndarray, sample_time: float):
     """Frequency response of a python-control model on a grid in Hz.
 
     Discrete models are evaluated at ``z = exp(j 2 pi f dt)``, continuous ones
-    at ``s = j 2 pi f`` (``sample_time`` is then not used).
+    at ``s = j 2 pi f`` (``sample_time`` is then not used). Shape ``(K,)`` for
+    a SISO model, ``(n_outputs, n_inputs, K)`` otherwise.
     """
     freqs = np.asarray(frequencies, dtype=float)
     if control.isdtime(system, strict=True):
@@ -261,53 +315,59 @@ def frequency_response(system, frequencies: np.ndarray, sample_time: float):
     else:
         points = 2j * np.pi * freqs
     ss = control.ss(system)
+    siso = ss.ninputs == 1 and ss.noutputs == 1
     n = ss.nstates
-    C = np.asarray(ss.C)[0]
-    D = complex(np.asarray(ss.D)[0, 0])
+    D = np.asarray(ss.D, dtype=complex)
     if n == 0:
-        return np.full(freqs.shape, D, dtype=complex)
-    column = np.asarray(ss.B)[:, 0]
-    (response,) = _resolvent_apply(np.asarray(ss.A), [column], points, C)
-    return response + D
+        response = np.broadcast_to(D[..., None], D.shape + freqs.shape).copy()
+    else:
+        rows = np.asarray(ss.C)
+        columns = list(np.asarray(ss.B).T)
+        response = np.stack(_resolvent_apply(np.asarray(ss.A), columns, points, rows),
+                            axis=-2) + D[..., None]
+    return response[0, 0] if siso else response
 
 
 def to_discrete_ss(plant: ContinuousPlant, sample_time: float) -> control.StateSpace:
     """Exact ZOH discretisation as a python-control model (delays as states).
 
     The delay ``d T + eps`` becomes ``d`` (plus one when ``eps > 0``) extra
-    shift-register states on the input.
+    shift-register states on each input.
     """
     Phi, Gamma0, Gamma1, whole, has_frac = _zoh_delay_matrices(plant, sample_time)
-    n = plant.n_states
+    n, m = plant.n_states, plant.n_inputs
     n_shift = whole + (1 if has_frac else 0)
     if n_shift == 0:
         return control.ss(Phi, Gamma0, plant.C, plant.D, sample_time)
-    # shift register s[k] = [u[k-1], ..., u[k-n_shift]]
-    size = n + n_shift
+    # shift register s[k] = [u[k-1], ..., u[k-n_shift]] (m states each)
+    size = n + n_shift * m
     A = np.zeros((size, size))
-    B = np.zeros((size, 1))
+    B = np.zeros((size, m))
     A[:n, :n] = Phi
-    B[n, 0] = 1.0
+    B[n:n + m] = np.eye(m)
     for i in range(1, n_shift):
-        A[n + i, n + i - 1] = 1.0
+        A[n + i * m:n + (i + 1) * m, n + (i - 1) * m:n + i * m] = np.eye(m)
+
+    def slot(lag):  # the states holding u[k - lag]
+        return slice(n + (lag - 1) * m, n + lag * m)
 
     def add_input(gain, lag):  # x[k+1] += gain * u[k - lag]
         if lag == 0:
             B[:n] += gain
         else:
-            A[:n, n + lag - 1] += gain[:, 0]
+            A[:n, slot(lag)] += gain
 
     add_input(Gamma0, whole)
     if has_frac:
         add_input(Gamma1, whole + 1)
-    C = np.zeros((1, size))
-    C[0, :n] = plant.C[0]
-    D = np.zeros((1, 1))
+    C = np.zeros((plant.n_outputs, size))
+    C[:, :n] = plant.C
+    D = np.zeros((plant.n_outputs, m))
     lag_d = whole + (1 if has_frac else 0)
     if lag_d == 0:
-        D[0, 0] = plant.D[0, 0]
+        D[:] = plant.D
     else:
-        C[0, n + lag_d - 1] += plant.D[0, 0]
+        C[:, slot(lag_d)] += plant.D
     return control.ss(A, B, C, D, sample_time)
 
 

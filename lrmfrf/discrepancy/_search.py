@@ -21,6 +21,7 @@ from ._inputs import SearchSettings, closed_loop, measured_system
 from ._models import ContinuousPlant, resonances, to_discrete_ss
 from .detect import (
     Calibration,
+    bin_power,
     calibrate,
     discrepancy_spectrum,
     global_test,
@@ -66,7 +67,7 @@ def run_search(problem: FitProblem, nominal: ContinuousPlant, catalogue: list,
     guard = LoopGuard(controller, problem.sample_time)
     _set_calibration(problem, cal0)
     w0 = problem.whitened(nominal)
-    test0 = global_test(np.abs(w0) ** 2, cal0, alpha)
+    test0 = global_test(bin_power(w0), cal0, alpha)
     before = {"test": test0, "model": _model_seen(problem, nominal), "cal": cal0}
 
     accepted, params, steps, findings = [], [], [], []
@@ -99,7 +100,7 @@ def run_search(problem: FitProblem, nominal: ContinuousPlant, catalogue: list,
         ]
         if ambiguous is not None:
             findings.append(ambiguous)
-        test = global_test(np.abs(problem.whitened(current)) ** 2, cal_final, alpha)
+        test = global_test(bin_power(problem.whitened(current)), cal_final, alpha)
         if test.significant and ambiguous is None:
             extra = _unexplained(problem, nominal, accepted, params, current,
                                  cal_final, effect_alpha, guard)
@@ -108,7 +109,7 @@ def run_search(problem: FitProblem, nominal: ContinuousPlant, catalogue: list,
                 findings.append(finding)
 
     _set_calibration(problem, cal_final)
-    test1 = global_test(np.abs(problem.whitened(current)) ** 2, cal_final, alpha)
+    test1 = global_test(bin_power(problem.whitened(current)), cal_final, alpha)
     # Both gaps use one yardstick, the measurement's calibrated std at the
     # updated model (the best description of the system that made the data).
     # The nominal calibration is the right null for *testing* the nominal
@@ -248,7 +249,7 @@ def _greedy(problem, nominal, catalogue, accepted, params, steps, calibrator, *,
         cal = calibrator(current)
         _set_calibration(problem, cal)
         w_after = problem.whitened(current)
-        if not global_test(np.abs(w_after) ** 2, cal, alpha).significant:
+        if not global_test(bin_power(w_after), cal, alpha).significant:
             break
     return current, None, cal
 
@@ -398,7 +399,7 @@ def _intervals(fit, index, effect) -> dict:
 
 
 def _band(frequencies, w_before, w_after) -> tuple:
-    gain = np.maximum(np.abs(w_before) ** 2 - np.abs(w_after) ** 2, 0.0)
+    gain = np.maximum(bin_power(w_before) - bin_power(w_after), 0.0)
     total = gain.sum()
     if total <= 0:
         return (float(frequencies[0]), float(frequencies[-1]))
@@ -413,7 +414,10 @@ def _context(problem: FitProblem, plant: ContinuousPlant, cal) -> EffectContext:
     model = problem.measured_response(plant_frf)
     residual = problem.measured - model - problem.bias
     std = problem.scale * problem.std
-    if problem.controller is None:
+    if plant_frf.ndim > 1:
+        sensitivity, plant_meas = _plant_level(problem, plant_frf)
+        plant_std = std  # the measured system's: weights of initial guesses only
+    elif problem.controller is None:
         sensitivity = np.ones_like(plant_frf)
         plant_meas = problem.measured - problem.bias
         plant_std = std
@@ -429,7 +433,7 @@ def _context(problem: FitProblem, plant: ContinuousPlant, cal) -> EffectContext:
         weight = np.abs(plant_frf) ** 2 / plant_std**2
     weight = np.where(np.isfinite(weight) & np.isfinite(ratio), weight, 0.0)
     ratio = np.where(np.isfinite(ratio), ratio, 1.0)
-    w2 = np.abs(residual / std) ** 2
+    w2 = bin_power(residual / std)
     return EffectContext(
         plant=plant,
         frequencies=problem.frequencies,
@@ -442,6 +446,33 @@ def _context(problem: FitProblem, plant: ContinuousPlant, cal) -> EffectContext:
         residual=residual,
         std=std,
     )
+
+
+def _plant_level(problem: FitProblem, plant_frf: np.ndarray):
+    """MIMO: the sensitivities ``(S_o, S_i)`` and the measured plant.
+
+    ``dG = S_o dP S_i`` with ``S_o = (I + P C)^-1`` (n_y, n_y, K) and
+    ``S_i = (I + C P)^-1`` (n_u, n_u, K) at the model (identities without a
+    controller); the measured plant is ``G (I - C G)^-1``.
+    """
+    n_y, n_u, K = plant_frf.shape
+    seen = np.moveaxis(problem.measured - problem.bias, -1, 0)  # (K, n_y, n_u)
+    if problem.controller is None:
+        eye_y = np.broadcast_to(np.eye(n_y)[..., None], (n_y, n_y, K))
+        eye_u = np.broadcast_to(np.eye(n_u)[..., None], (n_u, n_u, K))
+        return (eye_y, eye_u), problem.measured - problem.bias
+    P = np.moveaxis(plant_frf, -1, 0)
+    C = np.moveaxis(problem.controller, -1, 0)  # (K, n_u, n_y)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        S_o = np.linalg.inv(np.eye(n_y) + P @ C)
+        S_i = np.linalg.inv(np.eye(n_u) + C @ P)
+        try:
+            inverse = np.linalg.inv(np.eye(n_u) - C @ seen)
+            plant_meas = seen @ inverse
+        except np.linalg.LinAlgError:
+            plant_meas = np.full_like(seen, np.nan)
+    return ((np.moveaxis(S_o, 0, -1), np.moveaxis(S_i, 0, -1)),
+            np.moveaxis(plant_meas, 0, -1))
 
 
 def _model_seen(problem: FitProblem, plant: ContinuousPlant) -> np.ndarray:
@@ -505,7 +536,8 @@ class Calibrator:
         if self.n_runs == 0:
             half_window = getattr(self.template, "half_window", 4)
             inflation = max(float(half_window) / 4.0, 1.0)
-            return uncalibrated(self.bins.size, self.smoothing_bins, inflation)
+            return uncalibrated(self.bins.size, self.smoothing_bins, inflation,
+                                entry_shape=self.problem.measured.shape[:-1])
         system = measured_system(plant, self.controller, self.sample_time)
         model_frf = self.problem.measured_response(self.problem.plant_response(plant))
         return calibrate(

@@ -19,6 +19,22 @@ With these, ``mean |w|^2`` is approximately ``Gamma(n_eff, 1/n_eff)``
 (global test) and the moving mean over ``smoothing_bins`` bins (the discrepancy
 spectrum) approximately ``Gamma(a, 1/a)`` with ``a`` measured too; its
 maximum is tested with a Bonferroni correction over ``n_eff`` bins.
+
+MIMO (``n_y x n_u`` entries). Each entry has its own bias and ``kappa``; the
+whitened residual is all entries' bins, and the statistics work on the bin
+power ``m(k)``, the mean over entries of ``|w_ij(k)|^2`` (:func:`bin_power`;
+``|w(k)|^2`` for SISO). The inflation ``c`` is counted against the
+``n_entries K`` terms (``K n_entries / c`` independent ones: ``c`` is about
+the SISO bin correlation when the entries' errors are independent, larger when
+they are correlated), so ``mean m`` is approximately
+``Gamma(n_eff, 1/n_eff)`` with ``n_eff = n_entries K / c``, and the cost
+``sum |w|^2 / c`` a chi-square as in SISO. The discrepancy spectrum is the
+moving mean of ``m`` (the sum over entries of the smoothed whitened squared
+residual, divided by ``n_entries``); its Gamma shape ``a`` is measured from
+the simulated runs as in SISO (bounded by ``n_entries * smoothing_bins``) and
+its maximum is tested over the ``K / c`` positions. All of it is calibrated
+by the same simulation (the MIMO model, the measured inputs, each output's
+measured noise spectrum), so no independence between entries is assumed.
 """
 
 from __future__ import annotations
@@ -37,6 +53,7 @@ from .._validation import renamed_keyword
 __all__ = [
     "Calibration",
     "GlobalTest",
+    "bin_power",
     "calibrate",
     "uncalibrated",
     "discrepancy_spectrum",
@@ -77,6 +94,10 @@ class Calibration:
         Scale of the error of ``G_meas - bias`` (bias not counted, the noise
         of its ``n_runs``-run estimate counted), for the bias-corrected refit;
         ``None`` when not calibrated.
+    n_entries : int, default 1
+        ``n_y * n_u`` of a MIMO measurement (``bias``, ``scale`` and
+        ``noise_scale`` then have shape ``(n_y, n_u, K)``; ``inflation`` counts
+        against ``n_entries * K`` terms, see the module docstring).
     """
 
     bias: np.ndarray
@@ -88,6 +109,7 @@ class Calibration:
     null_gaps: np.ndarray
     method: str = "simulation"
     noise_scale: np.ndarray | None = None
+    n_entries: int = 1
 
     @property
     def window(self) -> int:
@@ -167,9 +189,20 @@ def discrepancy_spectrum(w2: np.ndarray, smoothing_bins: int | None = None, *,
     return total / count
 
 
+def bin_power(w: np.ndarray) -> np.ndarray:
+    """Mean over entries of ``|w|^2`` per bin: shape (K,) from (..., K).
+
+    ``|w|^2`` itself for SISO ``w`` of shape (K,).
+    """
+    w2 = np.abs(np.asarray(w)) ** 2
+    if w2.ndim == 1:
+        return w2
+    return w2.reshape(-1, w2.shape[-1]).mean(axis=0)
+
+
 def n_effective(n_bins: int, calibration: Calibration) -> float:
-    """Effective number of independent bins ``n_bins / inflation``."""
-    return max(n_bins / calibration.inflation, 1.0)
+    """Effective number of independent terms ``n_entries * n_bins / inflation``."""
+    return max(n_bins * calibration.n_entries / calibration.inflation, 1.0)
 
 
 def global_test(w2: np.ndarray, calibration: Calibration, alpha: float) -> GlobalTest:
@@ -178,7 +211,8 @@ def global_test(w2: np.ndarray, calibration: Calibration, alpha: float) -> Globa
     Parameters
     ----------
     w2 : ndarray of shape (K,)
-        ``|w|^2`` with the calibrated std (``kappa`` applied).
+        ``|w|^2`` with the calibrated std (``kappa`` applied); for MIMO the
+        bin power (:func:`bin_power`).
     calibration : Calibration
     alpha : float
         Family-wise false-alarm level.
@@ -211,27 +245,31 @@ def spectrum_threshold(n_bins: int, calibration: Calibration, alpha: float) -> f
 
     Bonferroni over the ``n_bins / inflation`` effectively independent bins
     (the moving mean is evaluated at every bin, so counting only
-    non-overlapping windows would be too lenient).
+    non-overlapping windows would be too lenient). For MIMO the positions are
+    the ``n_bins / inflation`` bins, not the entries.
     """
-    n_tests = n_effective(n_bins, calibration)
+    n_tests = max(n_bins / calibration.inflation, 1.0)
     a = calibration.spectrum_shape
     return float(scipy.stats.gamma.isf(alpha / n_tests, a) / a)
 
 
 def uncalibrated(n_bins: int, smoothing_bins: int = 9, inflation: float = 1.0, *,
-                 window: int | None = None) -> Calibration:
+                 window: int | None = None, entry_shape: tuple = ()) -> Calibration:
     """Calibration that trusts the estimator's std, no bias, given inflation.
 
     Used when simulation is switched off (``calibration_runs=0``); the tests
     are then only as good as the estimator's std and ``inflation``.
-    ``window`` is the deprecated name of ``smoothing_bins``.
+    ``window`` is the deprecated name of ``smoothing_bins``; ``entry_shape``
+    is ``(n_y, n_u)`` for a MIMO measurement.
     """
     smoothing_bins = renamed_keyword(smoothing_bins, window, new="smoothing_bins",
                                      old="window", default=9)
     shape = max(smoothing_bins / max(inflation, 1.0), 1.0)
-    return Calibration(np.zeros(n_bins, complex), np.ones(n_bins), float(inflation),
-                       float(shape), int(smoothing_bins), 0, np.zeros(0),
-                       method="uncalibrated")
+    full = tuple(entry_shape) + (n_bins,)
+    n_entries = int(np.prod(entry_shape, dtype=int))
+    return Calibration(np.zeros(full, complex), np.ones(full), float(inflation),
+                       float(shape * n_entries), int(smoothing_bins), 0, np.zeros(0),
+                       method="uncalibrated", n_entries=n_entries)
 
 
 def calibrate(
@@ -267,15 +305,16 @@ def calibrate(
         Unfitted template (cloned per run).
     model_system : control.StateSpace
         Discrete model of the measured system (closed loop if a controller).
-    u : ndarray of shape (P, N)
+    u : ndarray of shape (P, N) (SISO) or (P, n_u, N)
         Inputs of the experiments.
     F : int
     sample_time : float
-    noise_variance : ndarray of shape (M//2+1,)
-        Variance of the slow output noise DFT per slow bin (unnormalised DFT).
+    noise_variance : ndarray of shape (M//2+1,) or (n_y, M//2+1)
+        Variance of the slow output noise DFT per slow bin (unnormalised DFT),
+        per output for MIMO.
     bins : ndarray of int, shape (K,)
         Fast bins (``0..N//2``) compared.
-    model_frf : ndarray of shape (K,), complex
+    model_frf : ndarray of shape (K,) or (n_y, n_u, K), complex
         Model FRF at ``bins``.
     n_runs, smoothing_bins, n_bands : int
         Simulated runs, width of the discrepancy-spectrum moving mean (bins)
@@ -296,15 +335,21 @@ def calibrate(
 
     width = renamed_keyword(smoothing_bins, window, new="smoothing_bins",
                             old="window", default=9)
-    P, N = u.shape
+    P, N = u.shape[0], u.shape[-1]
     M = N // F
     clean = np.stack([
         simulate(model_system, u[p], F,
                  x0=periodic_state(model_system, u[p]) if steady_state else None
                  ).y_l_clean
         for p in range(P)
-    ])
-    noise_std_spectrum = _smooth_noise_spectrum(noise_variance, M)
+    ])  # (P, M) or (P, n_y, M)
+    noise_variance = np.asarray(noise_variance, dtype=float)
+    if clean.ndim == 2:
+        noise_std_spectrum = _smooth_noise_spectrum(noise_variance, M)
+    else:
+        noise_variance = noise_variance.reshape(clean.shape[1], -1)
+        noise_std_spectrum = np.stack([_smooth_noise_spectrum(v, M)
+                                       for v in noise_variance])
     frfs, stds = [], []
     for _ in range(n_runs):
         noise = _coloured_noise(noise_std_spectrum, M, P, rng)
@@ -312,8 +357,8 @@ def calibrate(
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             fitted.fit(list(u), list(clean + noise), F, sample_time=sample_time)
-        frfs.append(np.asarray(fitted.frf_)[bins])
-        stds.append(np.asarray(fitted.frf_std_)[bins])
+        frfs.append(np.asarray(fitted.frf_)[..., bins])
+        stds.append(np.asarray(fitted.frf_std_)[..., bins])
     frfs, stds = np.array(frfs), np.array(stds)
     finite = np.isfinite(frfs) & np.isfinite(stds) & (stds > 0)
     if np.count_nonzero(finite.all(axis=0)) < 2 * n_bands:
@@ -342,11 +387,15 @@ def calibrate(
     with np.errstate(divide="ignore", invalid="ignore"):
         w2 = np.where(finite, np.abs(errors) ** 2 / stds**2, np.nan)
     z2 = np.where(np.isfinite(w2), w2 / scale2, 1.0)
-    inflation = _inflation(z2, n_bands)
+    n_entries = int(np.prod(z2.shape[1:-1], dtype=int))
+    if n_entries > 1:  # the bin power: mean over entries
+        z2 = z2.reshape(n_runs, n_entries, -1).mean(axis=1)
+    inflation = _inflation(z2, n_bands, n_entries)
     spectra = discrepancy_spectrum(z2, width)
     var = float(np.mean(np.var(spectra, axis=0, ddof=1)))
     mean = float(np.mean(spectra))
-    shape = float(np.clip(mean**2 / var, 1.0, width)) if var > 0 else float(width)
+    most = width * n_entries
+    shape = float(np.clip(mean**2 / var, 1.0, most)) if var > 0 else float(most)
     return Calibration(
         bias=bias,
         scale=np.sqrt(scale2),
@@ -356,14 +405,17 @@ def calibrate(
         smoothing_bins=int(width),
         n_runs=int(n_runs),
         null_gaps=np.sqrt(np.mean(z2, axis=1)),
+        n_entries=n_entries,
     )
 
 
-def _inflation(w2: np.ndarray, n_bands: int) -> float:
+def _inflation(w2: np.ndarray, n_bands: int, n_entries: int = 1) -> float:
     """``c`` from the run-to-run variance of band means of ``|w|^2``.
 
     For ``L`` independent Exp(1) terms the band mean has variance ``1/L``; the
-    pooled ratio of observed to independent variance is ``c``.
+    pooled ratio of observed to independent variance is ``c``. With MIMO bin
+    powers (means of ``n_entries`` terms) a band of ``L`` bins holds
+    ``n_entries L`` terms.
     """
     n_runs, K = w2.shape
     edges = np.linspace(0, K, n_bands + 1).astype(int)
@@ -373,7 +425,7 @@ def _inflation(w2: np.ndarray, n_bands: int) -> float:
         mean = band.mean()
         if mean <= 0:
             continue
-        ratios.append(band.var(ddof=1) / mean**2 * (hi - lo))
+        ratios.append(band.var(ddof=1) / mean**2 * (hi - lo) * n_entries)
         weights.append(hi - lo)
     if not ratios:
         return 1.0
@@ -396,11 +448,15 @@ def _smooth_noise_spectrum(noise_variance: np.ndarray, M: int) -> np.ndarray:
 
 def _coloured_noise(std_spectrum: np.ndarray, M: int, P: int,
                     rng: np.random.Generator) -> np.ndarray:
-    """``P`` real noise records whose DFT has ``E|V(k)|^2 = std_spectrum(k)^2``."""
-    half = std_spectrum.size
-    spectrum = (rng.standard_normal((P, half)) + 1j * rng.standard_normal((P, half)))
+    """``P`` real noise records whose DFT has ``E|V(k)|^2 = std_spectrum(k)^2``.
+
+    ``std_spectrum`` of shape (M//2+1,) gives (P, M); of shape (n_y, M//2+1)
+    (one spectrum per output) gives (P, n_y, M).
+    """
+    shape = (P,) + std_spectrum.shape
+    spectrum = (rng.standard_normal(shape) + 1j * rng.standard_normal(shape))
     spectrum *= std_spectrum / math.sqrt(2.0)
-    spectrum[:, 0] = std_spectrum[0] * rng.standard_normal(P)
+    spectrum[..., 0] = std_spectrum[..., 0] * rng.standard_normal(shape[:-1])
     if M % 2 == 0:
-        spectrum[:, -1] = std_spectrum[-1] * rng.standard_normal(P)
-    return np.fft.irfft(spectrum, n=M, axis=1)
+        spectrum[..., -1] = std_spectrum[..., -1] * rng.standard_normal(shape[:-1])
+    return np.fft.irfft(spectrum, n=M, axis=-1)

@@ -26,6 +26,22 @@ model_error     zero_frequency, zero_damping, ``P -> H P``, ``H`` a unit-DC-gain
 
 ``missing_mode`` also fits the modal residue ``r`` (a nuisance parameter,
 reported with the finding's evidence, not in ``parameters``).
+
+MIMO plants (``n_y`` outputs, ``n_u`` inputs). ``gain``, ``delay``,
+``low_pass`` and ``model_error`` act on every input channel alike (one
+parameter set: an actuator-chain error common to all channels; a per-channel
+error shows as a weaker fit or an ``ambiguous`` step). ``missing_mode`` adds
+a mode with the rank-one real residue ``c b^T`` (a mode shape: ``c`` over the
+outputs, ``b`` over the inputs), ``P -> P + c b^T / (s^2 + 2 z w s + w^2)``;
+its nuisance parameters are ``residue_0 .. residue_{n_y-1}`` (``c``) and the
+angles ``input_angle_1 .. input_angle_{n_u-1}`` of the unit vector ``b``
+(hyperspherical coordinates, so ``c b^T`` has no scale ambiguity), started
+from the rank-one part of a weighted least-squares residue. ``mode_shift``
+moves a model mode of the whole plant: the mode's block ``A_m`` becomes
+``alpha A_m + beta I`` (the new pole pair, same modal directions) and its
+input matrix is divided by ``alpha``, which keeps the numerator ``s b1 + b0``
+exactly when ``b1 = C_m B_m = 0`` (force to position) and approximately
+otherwise. SISO keeps its exact numerator-preserving surgery.
 """
 
 from __future__ import annotations
@@ -73,12 +89,17 @@ class EffectContext:
         Smoothed whitened squared residual (the discrepancy spectrum).
     resonances : list of Resonance
         Lightly damped modes of ``plant``.
-    sensitivity : ndarray of shape (K,), complex
+    sensitivity : ndarray of shape (K,), complex, or pair of ndarrays
         ``dG/dP`` of the measured system at the model (1 without controller).
-    residual : ndarray of shape (K,), complex
+        MIMO: the pair ``(S_o, S_i)`` of shapes (n_y, n_y, K) and
+        (n_u, n_u, K) with ``dG = S_o dP S_i`` (identities in open loop).
+    residual : ndarray of shape (K,) or (n_y, n_u, K), complex
         ``G_meas - G_model``.
-    std : ndarray of shape (K,)
+    std : ndarray of the shape of ``residual``
         Calibrated standard deviation of ``G_meas``.
+
+    For MIMO, ``plant_ratio`` and ``plant_weight`` are per entry,
+    ``(n_y, n_u, K)``; ``discrepancy`` is the bin power's moving mean, (K,).
     """
 
     plant: ContinuousPlant
@@ -239,10 +260,8 @@ class LowPass(Effect):
 
     def apply(self, plant, params):
         wc = TWO_PI * params["cutoff"]
-        return series_input(
-            plant, np.array([[-wc]]), np.array([[wc]]), np.array([[1.0]]),
-            np.array([[0.0]]),
-        )
+        eye = np.eye(plant.n_inputs)  # one filter per input channel, alike
+        return series_input(plant, -wc * eye, wc * eye, eye, 0.0 * eye)
 
     def describe(self, params):
         return (
@@ -268,9 +287,24 @@ class MissingMode(Effect):
     order = 1
     repeatable = True
 
-    def __init__(self, *, n_starts: int = 4, max_damping: float = 0.1):
+    def __init__(self, *, n_starts: int = 4, max_damping: float = 0.1,
+                 shape: tuple | None = None):
         self.n_starts = n_starts
         self.max_damping = max_damping
+        self.shape = None if shape is None or tuple(shape) == (1, 1) else tuple(shape)
+        if self.shape is not None:
+            n_y, n_u = self.shape
+            self.nuisance_names = (
+                tuple(f"residue_{i}" for i in range(n_y))
+                + tuple(f"input_angle_{j}" for j in range(1, n_u))
+            )
+
+    def expand(self, context):
+        plant = context.plant
+        if plant.is_siso or self.shape is not None:
+            return [self]
+        return [MissingMode(n_starts=self.n_starts, max_damping=self.max_damping,
+                            shape=(plant.n_outputs, plant.n_inputs))]
 
     def initial_guesses(self, context):
         lowest = self.lowest_frequency(context)
@@ -280,16 +314,26 @@ class MissingMode(Effect):
         for index in peaks:
             f0 = max(float(context.frequencies[index]), lowest)
             for zeta in (0.005, 0.015, 0.04):
-                residue = _mode_residue(context, f0, zeta)
-                guesses.append({"frequency": f0, "damping": zeta, "residue": residue})
+                guesses.append({"frequency": f0, "damping": zeta,
+                                **self._residue_guess(context, f0, zeta)})
         return guesses
 
+    def _residue_guess(self, context, frequency, damping) -> dict:
+        if self.shape is None:
+            return {"residue": _mode_residue(context, frequency, damping)}
+        c, b = _mode_shape_guess(context, frequency, damping)
+        angles = _unit_vector_angles(b)
+        guess = {f"residue_{i}": float(v) for i, v in enumerate(c)}
+        guess.update({f"input_angle_{j + 1}": float(a) for j, a in enumerate(angles)})
+        return guess
+
     def bounds(self, context):
-        return {
+        out = {
             "frequency": (self.lowest_frequency(context), 0.999 * context.nyquist),
             "damping": (1e-4, self.max_damping),
-            "residue": (-np.inf, np.inf),
         }
+        out.update({name: (-np.inf, np.inf) for name in self.nuisance_names})
+        return out
 
     @staticmethod
     def lowest_frequency(context) -> float:
@@ -303,8 +347,18 @@ class MissingMode(Effect):
         return float(f[0] + 10 * spacing)
 
     def apply(self, plant, params):
-        return add_mode(plant, params["frequency"], params["damping"],
-                        params["residue"], 0.0)
+        if self.shape is None:
+            return add_mode(plant, params["frequency"], params["damping"],
+                            params["residue"], 0.0)
+        n_y, n_u = self.shape
+        c = np.array([params[f"residue_{i}"] for i in range(n_y)])
+        angles = [params[f"input_angle_{j}"] for j in range(1, n_u)]
+        return add_mode(plant, params["frequency"], params["damping"], c, 0.0,
+                        input_vector=_unit_vector(angles))
+
+    def __repr__(self):
+        return "MissingMode()" if self.shape is None else (
+            f"MissingMode(shape={self.shape})")
 
     def describe(self, params):
         return (
@@ -335,6 +389,7 @@ class ModeShift(Effect):
             ModeShift(target=mode, max_shift=self.max_shift)
             for mode in context.resonances
             if mode.frequency < context.nyquist
+            and not _repeated(mode, context.resonances)
         ]
 
     def label(self):
@@ -360,6 +415,9 @@ class ModeShift(Effect):
         }
 
     def apply(self, plant, params):
+        if not plant.is_siso:
+            return shift_mode(plant, self.target.frequency, self.target.damping,
+                              params["frequency"], params["damping"])
         rest, b1, b0 = split_mode(plant, self.target.frequency, self.target.damping)
         return add_mode(rest, params["frequency"], params["damping"], b0, b1)
 
@@ -418,7 +476,9 @@ class ModelError(Effect):
         c1 = dc * (2 * zz * wz - 2 * zp * wp)
         c0 = dc * (wz**2 - wp**2)
         Cf = np.array([[c0 / wp, c1]])
-        return series_input(plant, Af, Bf, Cf, np.array([[dc]]))
+        eye = np.eye(plant.n_inputs)  # the same filter on every input channel
+        return series_input(plant, np.kron(Af, eye), np.kron(Bf, eye),
+                            np.kron(Cf, eye), np.kron(np.array([[dc]]), eye))
 
     def describe(self, params):
         return (
@@ -449,17 +509,22 @@ def series_input(plant: ContinuousPlant, Af, Bf, Cf, Df) -> ContinuousPlant:
 
 
 def add_mode(plant: ContinuousPlant, frequency: float, damping: float,
-             b0: float, b1: float) -> ContinuousPlant:
-    """``plant + (b1 s + b0) / (s^2 + 2 damping w s + w^2)``, ``w = 2 pi f``.
+             b0, b1, *, input_vector=None) -> ContinuousPlant:
+    """``plant + (b1 s + b0) b^T / (s^2 + 2 damping w s + w^2)``, ``w = 2 pi f``.
 
-    The mode is realised with states ``[w q, dq/dt]`` (well scaled).
+    The mode is realised with states ``[w q, dq/dt]`` (well scaled). For a
+    MIMO plant ``b0`` and ``b1`` may be vectors over the outputs and
+    ``input_vector`` is ``b`` over the inputs (default: ones, SISO: 1).
     """
     w = TWO_PI * frequency
-    n = plant.n_states
+    m, n_y = plant.n_inputs, plant.n_outputs
+    direction = (np.ones((1, m)) if input_vector is None
+                 else np.asarray(input_vector, dtype=float).reshape(1, m))
     A = scipy.linalg.block_diag(plant.A, np.array([[0.0, w], [-w, -2 * damping * w]]))
-    B = np.vstack([plant.B, np.array([[0.0], [1.0]])])
-    C = np.hstack([plant.C, np.array([[b0 / w, b1]])])
-    del n
+    B = np.vstack([plant.B, np.zeros((1, m)), direction])
+    b0 = np.broadcast_to(np.asarray(b0, dtype=float).reshape(-1), (n_y,))
+    b1 = np.broadcast_to(np.asarray(b1, dtype=float).reshape(-1), (n_y,))
+    C = np.hstack([plant.C, np.column_stack([b0 / w, b1])])
     return plant.with_(A=A, B=B, C=C)
 
 
@@ -473,6 +538,39 @@ def split_mode(plant: ContinuousPlant, frequency: float, damping: float):
     b1, b0 : float
         The mode's numerator: it is ``(b1 s + b0) / (s^2 + 2 z w s + w^2)``.
     """
+    rest, A11, B1, C1 = _separate_mode(plant, frequency, damping)
+    b1 = float((C1 @ B1)[0, 0])
+    b0 = float((C1 @ (A11 - np.trace(A11) * np.eye(2)) @ B1)[0, 0])
+    return rest, b1, b0
+
+
+def shift_mode(plant: ContinuousPlant, frequency: float, damping: float,
+               new_frequency: float, new_damping: float) -> ContinuousPlant:
+    """Move the mode nearest ``(frequency, damping)`` (any plant dimensions).
+
+    The mode's 2x2 block ``A_m`` (isolated by :func:`_separate_mode`) becomes
+    ``alpha A_m + beta I`` with the new pole pair (``alpha = Im p' / Im p``,
+    ``beta = Re p' - alpha Re p``: same modal directions), and its input
+    matrix ``B_m`` is divided by ``alpha``. The numerator ``s b1 + b0`` (matrices
+    for MIMO) becomes ``s b1 / alpha + b0 - (beta / alpha) b1``: exactly kept
+    when ``b1 = C_m B_m = 0`` (force to position).
+    """
+    rest, A11, B1, C1 = _separate_mode(plant, frequency, damping)
+    pole = np.linalg.eigvals(A11)
+    pole = pole[np.argmax(pole.imag)]
+    w = TWO_PI * new_frequency
+    zeta = min(max(new_damping, 0.0), 0.999999)
+    new_pole = complex(-zeta * w, w * math.sqrt(1 - zeta**2))
+    alpha = new_pole.imag / pole.imag
+    beta = new_pole.real - alpha * pole.real
+    A = scipy.linalg.block_diag(rest.A, alpha * A11 + beta * np.eye(2))
+    B = np.vstack([rest.B, B1 / alpha])
+    C = np.hstack([rest.C, C1])
+    return plant.with_(A=A, B=B, C=C)
+
+
+def _separate_mode(plant: ContinuousPlant, frequency: float, damping: float):
+    """``(rest, A_m, B_m, C_m)``: the plant without the mode, and the mode."""
     w = TWO_PI * frequency
     target = complex(-damping * w, w * math.sqrt(max(1 - damping**2, 0.0)))
     poles = np.linalg.eigvals(plant.A)
@@ -500,10 +598,19 @@ def split_mode(plant: ContinuousPlant, frequency: float, damping: float):
     B = Tinv @ Z.T @ plant.B
     C = plant.C @ Z @ Tm
     B1, C1 = B[:2], C[:, :2]
-    b1 = float((C1 @ B1)[0, 0])
-    b0 = float((C1 @ (A11 - np.trace(A11) * np.eye(2)) @ B1)[0, 0])
     rest = plant.with_(A=A22, B=B[2:], C=C[:, 2:])
-    return rest, b1, b0
+    return rest, A11, B1, C1
+
+
+def _repeated(mode: Resonance, modes: list) -> bool:
+    """Another pole pair at the same place (e.g. a symmetric suspension of a
+    MIMO stage): the mode cannot be isolated and moved on its own."""
+    return any(
+        other.index != mode.index
+        and abs(other.frequency - mode.frequency) <= 1e-6 * mode.frequency
+        and abs(other.damping - mode.damping) <= 1e-6 * max(mode.damping, 1e-12)
+        for other in modes
+    )
 
 
 def _spectrum_peaks(spectrum: np.ndarray, count: int) -> list[int]:
@@ -542,3 +649,61 @@ def _mode_residue(context: EffectContext, frequency: float, damping: float) -> f
     if denominator == 0 or not np.isfinite(denominator):
         return 0.0
     return float(np.real(np.sum(np.conj(a) * b)) / denominator)
+
+
+def _mode_shape_guess(context: EffectContext, frequency: float, damping: float):
+    """MIMO: ``(c, b)`` of the rank-one part of the least-squares residue.
+
+    The real residue matrix ``R`` (n_y, n_u) of a mode with this frequency and
+    damping is fitted to the whitened residual through the sensitivities
+    (``dG = S_o m R S_i``, ``m`` the unit mode's response), then ``R ~ c b^T``
+    by its largest singular triplet (``b`` of unit length).
+    """
+    residual, std = context.residual, context.std
+    n_y, n_u, K = residual.shape
+    if context.sensitivity is None:
+        S_o = np.broadcast_to(np.eye(n_y)[..., None], (n_y, n_y, K))
+        S_i = np.broadcast_to(np.eye(n_u)[..., None], (n_u, n_u, K))
+    else:
+        S_o, S_i = context.sensitivity
+    unit = ContinuousPlant(np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0)),
+                           np.zeros((1, 1)))
+    shape = discrete_response(add_mode(unit, frequency, damping, 1.0, 0.0),
+                              context.frequencies, context.sample_time)
+    # design[i, j, k, a, b] = S_o[i, a, k] m(k) S_i[b, j, k] / std[i, j, k]
+    design = np.einsum("iak,bjk->ijkab", S_o, S_i) * shape[None, None, :, None, None]
+    design = design / std[..., None, None]
+    design = design.reshape(-1, n_y * n_u)
+    target = (residual / std).reshape(-1)
+    a = np.concatenate([design.real, design.imag])
+    y = np.concatenate([target.real, target.imag])
+    good = np.all(np.isfinite(a), axis=1) & np.isfinite(y)
+    if not np.any(good):
+        return np.zeros(n_y), _unit_vector(np.zeros(n_u - 1))
+    R = np.linalg.lstsq(a[good], y[good], rcond=None)[0].reshape(n_y, n_u)
+    left, sv, right = np.linalg.svd(R)
+    return sv[0] * left[:, 0], right[0]
+
+
+def _unit_vector(angles) -> np.ndarray:
+    """Unit vector from hyperspherical angles (``n - 1`` angles give ``n``)."""
+    angles = np.asarray(angles, dtype=float).reshape(-1)
+    vector = np.ones(angles.size + 1)
+    for j, angle in enumerate(angles):
+        vector[j] *= math.cos(angle)
+        vector[j + 1:] *= math.sin(angle)
+    return vector
+
+
+def _unit_vector_angles(vector) -> np.ndarray:
+    """The angles of :func:`_unit_vector` for a unit ``vector``."""
+    v = np.asarray(vector, dtype=float).reshape(-1)
+    v = v / max(float(np.linalg.norm(v)), 1e-300)
+    angles = []
+    for j in range(v.size - 1):
+        tail = float(np.linalg.norm(v[j + 1:]))
+        angle = math.atan2(tail, v[j])
+        if j == v.size - 2 and v[-1] < 0:
+            angle = -angle
+        angles.append(angle)
+    return np.array(angles)

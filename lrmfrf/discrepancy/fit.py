@@ -26,31 +26,37 @@ import scipy.stats
 from ._models import ContinuousPlant, discrete_response
 from .effects import Effect
 
-__all__ = ["FitProblem", "CandidateFit", "fit_candidate", "fit_joint", "apply_all"]
+__all__ = ["FitProblem", "CandidateFit", "fit_candidate", "fit_joint", "apply_all",
+           "closed_loop_response"]
 
 
 @dataclass
 class FitProblem:
     """The measured FRF and everything needed to evaluate a model against it.
 
+    SISO arrays have shape ``(K,)``; a MIMO measurement puts its entries in
+    front, ``(n_y, n_u, K)`` (python-control's layout), and every entry of
+    every bin counts in the cost (the whitened residual is all entries' bins).
+
     Attributes
     ----------
     frequencies : ndarray of shape (K,)
         Compared bins in Hz.
-    measured : ndarray of shape (K,), complex
+    measured : ndarray of shape (K,) or (n_y, n_u, K), complex
         Estimated FRF of the measured system.
-    std : ndarray of shape (K,)
+    std : ndarray of the shape of ``measured``
         Estimator standard deviation (raw).
     sample_time : float
-    controller : ndarray of shape (K,), complex or None
+    controller : ndarray of shape (K,) or (n_u, n_y, K), complex, or None
         Controller frequency response; the measured system is then
-        ``P / (1 + C P)``.
-    bias : ndarray of shape (K,), complex
+        ``P (I + C P)^-1`` (``P / (1 + C P)`` for SISO).
+    bias : ndarray of the shape of ``measured``, complex
         Estimator bias expected under the model (from calibration).
-    scale : ndarray of shape (K,)
-        ``kappa`` per bin (from calibration).
+    scale : ndarray of the shape of ``measured``
+        ``kappa`` per bin and entry (from calibration).
     inflation : float
-        Correlation inflation ``c``.
+        Correlation inflation ``c``: the ``n_entries * K`` terms of the cost
+        count as ``n_entries * K / c`` independent ones.
     """
 
     frequencies: np.ndarray
@@ -67,8 +73,13 @@ class FitProblem:
         return self.frequencies.size
 
     @property
+    def n_entries(self) -> int:
+        """``n_y * n_u`` (1 for SISO)."""
+        return self.measured.size // max(self.n_bins, 1)
+
+    @property
     def n_effective(self) -> float:
-        return max(self.n_bins / self.inflation, 1.0)
+        return max(self.n_bins * self.n_entries / self.inflation, 1.0)
 
     def plant_response(self, plant: ContinuousPlant) -> np.ndarray:
         return discrete_response(plant, self.frequencies, self.sample_time)
@@ -76,7 +87,9 @@ class FitProblem:
     def measured_response(self, plant_frf: np.ndarray) -> np.ndarray:
         if self.controller is None:
             return plant_frf
-        return plant_frf / (1.0 + self.controller * plant_frf)
+        if plant_frf.ndim == 1:
+            return plant_frf / (1.0 + self.controller * plant_frf)
+        return closed_loop_response(plant_frf, self.controller)
 
     def whitened(self, plant: ContinuousPlant) -> np.ndarray:
         model = self.measured_response(self.plant_response(plant))
@@ -84,6 +97,21 @@ class FitProblem:
 
     def cost(self, plant: ContinuousPlant) -> float:
         return float(np.sum(np.abs(self.whitened(plant)) ** 2))
+
+
+def closed_loop_response(plant_frf: np.ndarray, controller_frf: np.ndarray):
+    """``P (I + C P)^-1`` per bin; ``P`` (n_y, n_u, K), ``C`` (n_u, n_y, K)."""
+    P = np.moveaxis(plant_frf, -1, 0)  # (K, n_y, n_u)
+    C = np.moveaxis(controller_frf, -1, 0)  # (K, n_u, n_y)
+    loop = np.eye(P.shape[2]) + C @ P  # (K, n_u, n_u)
+    # G = P loop^-1  <=>  loop^T G^T = P^T
+    G = np.linalg.solve(np.swapaxes(loop, 1, 2), np.swapaxes(P, 1, 2))
+    return np.moveaxis(np.swapaxes(G, 1, 2), 0, -1)
+
+
+def real_residual(w: np.ndarray) -> np.ndarray:
+    """Real and imaginary parts of all entries' bins, for least squares."""
+    return np.concatenate([w.real.ravel(), w.imag.ravel()])
 
 
 @dataclass
@@ -162,10 +190,10 @@ def fit_candidate(problem: FitProblem, base: ContinuousPlant, accepted: list,
         try:
             w = problem.whitened(plant_of(x))
         except (np.linalg.LinAlgError, ValueError):
-            return np.full(2 * problem.n_bins, 1e6)
+            return np.full(2 * problem.measured.size, 1e6)
         if not np.all(np.isfinite(w)):
-            return np.full(2 * problem.n_bins, 1e6)
-        return np.concatenate([w.real, w.imag])
+            return np.full(2 * problem.measured.size, 1e6)
+        return real_residual(w)
 
     starts = []
     for guess in guesses:
@@ -219,10 +247,10 @@ def fit_joint(problem: FitProblem, base: ContinuousPlant, effects: list,
         try:
             w = problem.whitened(apply_all(base, effects, unpack(x)))
         except (np.linalg.LinAlgError, ValueError):
-            return np.full(2 * problem.n_bins, 1e6)
+            return np.full(2 * problem.measured.size, 1e6)
         if not np.all(np.isfinite(w)):
-            return np.full(2 * problem.n_bins, 1e6)
-        return np.concatenate([w.real, w.imag])
+            return np.full(2 * problem.measured.size, 1e6)
+        return real_residual(w)
 
     result = _least_squares(residual, x0, lower, upper)
     x = result.x

@@ -94,13 +94,15 @@ class DiagnosisReport:
         The plant as given (discretised with ZOH if it was continuous).
     frequencies : ndarray of shape (K,)
         Compared bins in Hz.
-    measured, std : ndarray of shape (K,)
-        Measured FRF (complex) and its calibrated std ``kappa * std``.
-    model_before, model_after : ndarray of shape (K,), complex
+    measured, std : ndarray of shape (K,) or (n_y, n_u, K)
+        Measured FRF (complex) and its calibrated std ``kappa * std``
+        (per entry for a MIMO system).
+    model_before, model_after : ndarray of shape (K,) or (n_y, n_u, K), complex
         Model FRFs of the measured system (closed loop if a controller); the
         estimator bias is not added (it is counted in ``std``).
     spectrum_before, spectrum_after : ndarray of shape (K,)
-        Discrepancy spectrum (moving mean of the whitened squared residual).
+        Discrepancy spectrum (moving mean of the whitened squared residual;
+        for MIMO of its mean over the entries).
     threshold_before, threshold_after : float
         Level each spectrum exceeds by chance with probability ``alpha / 2``.
     p_value_before, p_value_after : float
@@ -205,7 +207,8 @@ class DiagnosisReport:
             "skipped_candidates": list(self.skipped_candidates),
         }
 
-    def plot(self, *, ax=None, units: str | None = None, axes=None):
+    def plot(self, *, ax=None, units: str | None = None, axes=None,
+             entry: tuple | None = None):
         """Bode plot with the +/-2 std band, and the discrepancy spectra.
 
         Magnitude in dB, phase unwrapped (continuous, in degrees; the measured
@@ -223,6 +226,9 @@ class DiagnosisReport:
             "Magnitude [dB re 1 m/N]", else "Magnitude [dB]".
         axes : sequence of 3 matplotlib Axes, optional
             Deprecated name of ``ax`` (removed in the next release).
+        entry : (int, int), optional
+            MIMO: the ``(output, input)`` entry in the Bode panels (default
+            ``(0, 0)``); the discrepancy panel is that of all entries.
 
         Returns
         -------
@@ -241,25 +247,26 @@ class DiagnosisReport:
         mag, phase, disc = axes
         f = self.frequencies
         drawn = {}
-        meas = np.abs(self.measured)
-        low = np.maximum(meas - 2 * self.std, meas * 1e-3)
-        drawn["band"] = mag.fill_between(f, _db(low), _db(meas + 2 * self.std),
+        measured, std, model_before, model_after = self._entry(entry)
+        meas = np.abs(measured)
+        low = np.maximum(meas - 2 * std, meas * 1e-3)
+        drawn["band"] = mag.fill_between(f, _db(low), _db(meas + 2 * std),
                                          color="0.8", label="measurement ± 2 std")
         (drawn["measured"],) = mag.plot(f, _db(meas), "k.", ms=2,
                                         label="measurement")
-        (drawn["before"],) = mag.plot(f, _db(np.abs(self.model_before)), "C0",
+        (drawn["before"],) = mag.plot(f, _db(np.abs(model_before)), "C0",
                                       label="model")
-        (drawn["after"],) = mag.plot(f, _db(np.abs(self.model_after)), "C3--",
+        (drawn["after"],) = mag.plot(f, _db(np.abs(model_after)), "C3--",
                                      label="updated model")
-        curves = np.concatenate([_db(meas), _db(np.abs(self.model_before)),
-                                 _db(np.abs(self.model_after))])
+        curves = np.concatenate([_db(meas), _db(np.abs(model_before)),
+                                 _db(np.abs(model_after))])
         curves = curves[np.isfinite(curves)]
         if curves.size:  # the band's lower edge can dive far below the data
             mag.set_ylim(bottom=curves.min() - 20.0)
-        reference = np.degrees(np.unwrap(np.angle(self.model_after)))
-        before = _shifted_to(np.degrees(np.unwrap(np.angle(self.model_before))),
+        reference = np.degrees(np.unwrap(np.angle(model_after)))
+        before = _shifted_to(np.degrees(np.unwrap(np.angle(model_before))),
                              reference[0])
-        phase.plot(f, _nearest_branch(np.degrees(np.angle(self.measured)),
+        phase.plot(f, _nearest_branch(np.degrees(np.angle(measured)),
                                       reference), "k.", ms=2)
         phase.plot(f, before, "C0")
         phase.plot(f, reference, "C3--")
@@ -283,9 +290,26 @@ class DiagnosisReport:
         mag.legend(loc="best", fontsize="small")
         disc.legend(loc="best", fontsize="small")
         names = ", ".join(self.effects) or "no findings"
-        mag.set_title(f"Diagnosis: {names}")
+        where = "" if self.measured.ndim == 1 else (
+            " (entry y{}/u{})".format(*(entry or (0, 0))))
+        mag.set_title(f"Diagnosis: {names}{where}")
         drawn.update(figure=fig, axes=list(axes))
         return _PlotResult(fig, axes, drawn)
+
+    def _entry(self, entry):
+        """The measured, std and model arrays of one entry (SISO: as they are)."""
+        arrays = (self.measured, self.std, self.model_before, self.model_after)
+        if self.measured.ndim == 1:
+            if entry not in (None, (0, 0)):
+                raise ValueError(f"`entry` is for MIMO reports; got {entry!r}.")
+            return arrays
+        i, j = (0, 0) if entry is None else entry
+        n_y, n_u = self.measured.shape[:2]
+        if not (0 <= i < n_y and 0 <= j < n_u):
+            raise ValueError(
+                f"`entry` must be (output, input) within ({n_y}, {n_u}); got {entry!r}."
+            )
+        return tuple(a[i, j] for a in arrays)
 
 
 class _PlotResult(tuple):
@@ -339,7 +363,8 @@ def _calibration_dict(calibration) -> dict | None:
         "inflation": _plain(calibration.inflation),
         "spectrum_shape": _plain(calibration.spectrum_shape),
         "smoothing_bins": calibration.smoothing_bins,
-    }
+    } | ({"n_entries": calibration.n_entries}
+         if getattr(calibration, "n_entries", 1) > 1 else {})
 
 
 def _plain(value):

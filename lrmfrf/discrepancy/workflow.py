@@ -69,14 +69,15 @@ def diagnose(
     Parameters
     ----------
     plant : control.StateSpace or control.TransferFunction
-        SISO model of the plant: discrete with ``dt == sample_time`` (taken as
-        the ZOH discretisation of a continuous model) or continuous
-        (discretised with ZOH).
-    u_h : array-like of shape (N,), (1, N) or (P, 1, N), or list of records
-        Fast-rate input(s) of the one input channel; several experiments
-        (a list or a 3-D array; a 2-D array is one record, channels first)
-        give better statistics.
-    y_l : array-like of shape (M,), (1, M) or (P, 1, M), or list of records
+        Model of the plant, ``n_y`` outputs and ``n_u`` inputs as the records
+        (SISO or MIMO): discrete with ``dt == sample_time`` (taken as the ZOH
+        discretisation of a continuous model) or continuous (discretised
+        with ZOH).
+    u_h : array-like of shape (N,), (n_u, N) or (P, n_u, N), or list of records
+        Fast-rate input(s); several experiments (a list or a 3-D array; a 2-D
+        array is one record, channels first) give better statistics. MIMO:
+        one experiment with ``n_u`` uncorrelated inputs at once is enough.
+    y_l : array-like of shape (M,), (n_y, M) or (P, n_y, M), or list of records
         Slow-rate output(s), ``M = N / F``.
     F : int
         Downsampling factor.
@@ -85,9 +86,10 @@ def diagnose(
         discrete, else of ``controller``; one of the three must give it. A
         value that contradicts a discrete model's ``dt`` is an error.
     controller : control.StateSpace or control.TransferFunction, optional
-        Discrete SISO feedback controller (``dt == sample_time``). The measured
-        system is then ``P (1 + C P)^-1`` (eq. EquivalentSystems) and effects
-        are named at the plant level. Without it the measured system is ``P``.
+        Discrete feedback controller (``dt == sample_time``; ``n_u`` outputs,
+        ``n_y`` inputs, ``u = u_h - C y``). The measured system is then
+        ``P (I + C P)^-1`` (eq. EquivalentSystems) and effects are named at
+        the plant level. Without it the measured system is ``P``.
     estimator : estimator, optional
         FRF estimator with ``fit(u_h, y_l, F, *, sample_time)`` and ``frf_``,
         ``frf_std_``, ``valid_`` (default ``LRMBeyondNyquist()``, its half
@@ -147,10 +149,23 @@ def diagnose(
     -------
     DiagnosisReport
 
+    Notes
+    -----
+    MIMO. The FRF entries ``(n_y, n_u, K)`` are compared together: the
+    whitened residual is all entries' bins, each entry with its own
+    calibrated bias and std scale; the tests use the bin power (mean over
+    entries of ``|w|^2``) with the correlation inflation counted against
+    the ``n_y n_u K`` terms (:mod:`lrmfrf.discrepancy.detect`). Gain, delay,
+    low-pass and the unnamed model error act on all inputs alike; a missing
+    mode has a rank-one residue ``c b^T``; a mode shift moves a mode of the
+    whole plant (:mod:`lrmfrf.discrepancy.effects`).
+
     Raises
     ------
     TypeError, ValueError
-        For a plant or controller of the wrong type or sample time, no sample
+        For a plant or controller of the wrong type, dimensions (the plant
+        must have the records' ``n_y`` outputs and ``n_u`` inputs) or sample
+        time, no sample
         time (neither given nor a discrete model's ``dt``), an unstable closed
         loop of the given plant and controller, data the estimator cannot fit,
         or too few usable bins. (Candidate models tried by the search that
@@ -175,7 +190,12 @@ def diagnose(
     smoothing_bins = renamed_keyword(smoothing_bins, window, new="smoothing_bins",
                                      old="window", default=9)
     records = check_records(u_h, y_l, F)
-    u, y = records.siso_stacks("diagnose")  # (P, N), (P, M) stacks
+    # SISO: (P, N) and (P, M) stacks, responses (K,); MIMO: (P, n_u, N) and
+    # (P, n_y, M), responses (n_y, n_u, K). The layers below follow the shape.
+    shape = (records.n_outputs, records.n_inputs)
+    entry_shape = () if records.is_siso else shape
+    u, y = (records.u[:, 0], records.y[:, 0]) if records.is_siso else (
+        records.u, records.y)
     F = records.F
     sample_time, source = resolve_sample_time(sample_time, plant, controller)
     settings = check_settings(
@@ -186,10 +206,12 @@ def diagnose(
     steady_state = check_bool(steady_state, "steady_state")
     catalogue = check_catalogue(effects)
     rng = check_rng(rng)
-    nominal, controller = check_models(plant, controller, sample_time, source)
+    nominal, controller = check_models(plant, controller, sample_time, source,
+                                       shape)
     band = check_band(band)
     fitted, template = fit_estimator(estimator, u, y, F, sample_time)
-    problem, bins = comparison_problem(fitted, band, controller, sample_time)
+    problem, bins = comparison_problem(fitted, band, controller, sample_time,
+                                       entry_shape)
     # the section the fits inside count themselves into (shared with other threads)
     with single_threaded_blas():
         calibrator = Calibrator(template, fitted, u, F, sample_time, bins, controller,
@@ -197,6 +219,6 @@ def diagnose(
                                 settings.smoothing_bins, rng,
                                 steady_state=steady_state)
         cal0 = calibration if calibration is not None else calibrator(nominal)
-        check_calibration(cal0, bins.size)
+        check_calibration(cal0, bins.size, entry_shape)
         return run_search(problem, nominal, catalogue, calibrator, cal0, settings,
                           controller=controller, F=F)

@@ -1,0 +1,233 @@
+"""``diagnose`` on 2x2 stages (issue 15 item 5, MIMO): known answers, seeded
+hidden-effect runs in closed loop, and the shape-mismatch messages.
+
+The 2x2 stage is corners 1 and 2 of the default four-corner plate
+(:func:`lrmfrf.discrepancy.hidden_mimo.two_by_two_stage`), in the loop with a
+diagonal lead-PID; ONE experiment of two uncorrelated multisines at 40 dB.
+The rates over random stages are in ``benchmarks/generalisation_diagnose.py
+--mimo``.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import control
+import numpy as np
+import pytest
+
+from lrmfrf.discrepancy import (
+    Delay,
+    Gain,
+    LowPass,
+    MissingMode,
+    ModeShift,
+    diagnose,
+)
+from lrmfrf.discrepancy._models import (
+    as_continuous_plant,
+    discrete_response,
+    frequency_response,
+    resonances,
+    to_discrete_ss,
+)
+from lrmfrf.discrepancy.detect import bin_power
+from lrmfrf.discrepancy.effects import EffectContext, shift_mode
+from lrmfrf.discrepancy.fit import closed_loop_response
+from lrmfrf.discrepancy.hidden import HiddenEffect
+from lrmfrf.discrepancy.hidden_mimo import (
+    StageMode,
+    mimo_hidden_effect_experiment,
+    two_by_two_stage,
+)
+from lrmfrf.plants import mimo_wafer_stage
+
+FREQS = np.linspace(1.0, 999.0, 301)
+#: A missing mode above the slow Nyquist frequency (333 Hz at F = 3).
+HIDDEN_MODE = HiddenEffect(
+    "missing_mode", {"frequency": 520.0, "damping": 0.01},
+    {"participation": 0.3, "c": (1.2, -0.9), "b": (0.8, 1.0)},
+)
+HIDDEN_GAIN = HiddenEffect("gain", {"gain": 1.15})
+FAST = {"calibration_runs": 6, "debias_rounds": 1}
+
+
+@pytest.fixture(scope="module")
+def stage():
+    return two_by_two_stage(mimo_wafer_stage(downsampling_factor=3), loop="closed")
+
+
+def _diagnose(experiment, **options):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return diagnose(experiment.plant, experiment.u_h, experiment.y_l,
+                        experiment.F, controller=experiment.controller, rng=3,
+                        **{**FAST, **options})
+
+
+def _z(frequencies, sample_time):
+    return np.exp(2j * np.pi * frequencies * sample_time)
+
+
+# ---------------------------------------------------------------------------
+# Known answers of the MIMO model layer
+# ---------------------------------------------------------------------------
+
+
+def test_mimo_response_and_fractional_delay_match_python_control(stage):
+    plant = as_continuous_plant(stage.plant, stage.sample_time, shape=(2, 2))
+    ref = stage.plant(_z(FREQS, stage.sample_time))
+    response = discrete_response(plant, FREQS, stage.sample_time)
+    assert response.shape == (2, 2, FREQS.size)
+    np.testing.assert_allclose(response, ref, rtol=0, atol=1e-9 * np.abs(ref).max())
+    delayed = plant.with_(delay=1.3 * stage.sample_time)  # two shift stages per input
+    discrete = to_discrete_ss(delayed, stage.sample_time)
+    assert discrete.nstates == plant.n_states + 2 * 2
+    np.testing.assert_allclose(discrete_response(delayed, FREQS, stage.sample_time),
+                               discrete(_z(FREQS, stage.sample_time)),
+                               atol=1e-12 * np.abs(ref).max())
+
+
+def test_closed_loop_response_is_the_feedback_loop(stage):
+    z = _z(FREQS, stage.sample_time)
+    P = stage.plant(z)
+    C = frequency_response(stage.controller, FREQS, stage.sample_time)
+    assert C.shape == (2, 2, FREQS.size)
+    loop = control.feedback(stage.plant, stage.controller, sign=-1)
+    np.testing.assert_allclose(closed_loop_response(P, C), loop(z),
+                               atol=1e-9 * np.abs(loop(z)).max())
+
+
+def test_missing_mode_adds_the_rank_one_mode(stage):
+    plant = as_continuous_plant(stage.plant_continuous(), stage.sample_time,
+                                shape=(2, 2))
+    context = EffectContext(plant, FREQS, stage.sample_time, None, None,
+                            np.zeros(FREQS.size))
+    (effect,) = MissingMode().expand(context)
+    assert effect.nuisance_names == ("residue_0", "residue_1", "input_angle_1")
+    c, angle = np.array([0.3, -0.2]), 0.7
+    params = {"frequency": 520.0, "damping": 0.01, "residue_0": c[0],
+              "residue_1": c[1], "input_angle_1": angle}
+    b = np.array([np.cos(angle), np.sin(angle)])
+    # independent: the generator's modal construction with c b^T / m
+    truth = stage.plant_continuous(extra=[(520.0, 0.01, c * stage.mass, b)])
+    np.testing.assert_allclose(
+        discrete_response(effect.apply(plant, params), FREQS, stage.sample_time),
+        control.sample_system(truth, stage.sample_time)(_z(FREQS, stage.sample_time)),
+        rtol=1e-8, atol=1e-12,
+    )
+
+
+def test_shift_mode_keeps_the_numerator_of_a_force_to_position_mode(stage):
+    plant = as_continuous_plant(stage.plant_continuous(), stage.sample_time,
+                                shape=(2, 2))
+    moved = list(stage.modes)
+    old = moved[2]
+    moved[2] = StageMode(old.frequency_hz * 1.06, 0.02, old.shape)
+    shifted = shift_mode(plant, old.frequency_hz, old.damping, moved[2].frequency_hz,
+                         0.02)
+    truth = control.sample_system(stage.plant_continuous(moved), stage.sample_time)
+    ref = truth(_z(FREQS, stage.sample_time))
+    np.testing.assert_allclose(discrete_response(shifted, FREQS, stage.sample_time),
+                               ref, atol=1e-9 * np.abs(ref).max())
+
+
+def test_bin_power_is_the_mean_over_entries():
+    w = np.arange(12.0).reshape(2, 2, 3) * (1 + 1j)
+    np.testing.assert_allclose(bin_power(w), np.mean(np.abs(w) ** 2, axis=(0, 1)))
+    np.testing.assert_array_equal(bin_power(w[0, 0]), np.abs(w[0, 0]) ** 2)
+
+
+# ---------------------------------------------------------------------------
+# Seeded hidden-effect runs (closed loop, one experiment, 40 dB)
+# ---------------------------------------------------------------------------
+
+
+def test_nothing_hidden_names_nothing(stage):
+    experiment = mimo_hidden_effect_experiment(None, stage=stage, rng=7)
+    assert experiment.u_h.shape == (1, 2, 1200)
+    assert experiment.y_l.shape == (1, 2, 400)
+    report = _diagnose(experiment)
+    assert report.findings == []
+    assert report.measured.shape[:2] == (2, 2)
+    assert report.calibration.n_entries == 4
+    assert 0.7 < report.gap_before < 1.3
+
+
+def test_hidden_missing_mode_is_named(stage):
+    experiment = mimo_hidden_effect_experiment(HIDDEN_MODE, stage=stage, rng=7)
+    report = _diagnose(experiment)
+    named = [f for f in report.findings if f.effect == "missing_mode"]
+    assert [f.effect for f in report.findings] == ["missing_mode"], report.findings
+    assert named[0].parameters["frequency"] == pytest.approx(520.0, rel=0.02)
+    assert report.gap_after < 1.3 < report.gap_before
+
+
+def test_hidden_gain_is_named(stage):
+    experiment = mimo_hidden_effect_experiment(HIDDEN_GAIN, stage=stage, rng=7)
+    report = _diagnose(experiment)
+    assert [f.effect for f in report.findings] == ["gain"], report.findings
+    assert report.findings[0].parameters["gain"] == pytest.approx(1.15, rel=0.02)
+
+
+# ---------------------------------------------------------------------------
+# Shape mismatches between models and records
+# ---------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def records(stage):
+    experiment = mimo_hidden_effect_experiment(None, stage=stage, rng=1)
+    return experiment.u_h, experiment.y_l
+
+
+def test_mimo_plant_with_siso_records_is_refused(stage, records):
+    u, y = records
+    with pytest.raises(ValueError, match="must be SISO"):
+        diagnose(stage.plant, u[:, :1], y[:, :1], 3, controller=stage.controller)
+
+
+def test_plant_of_other_dimensions_than_the_records_is_refused(stage, records):
+    u, y = records
+    plant = control.append(stage.plant, stage.plant[0, 0])  # 3 x 3
+    with pytest.raises(ValueError, match="has 3 output.*records have 2 output"):
+        diagnose(plant, u, y, 3, controller=stage.controller)
+
+
+def test_controller_of_wrong_dimensions_is_refused(stage, records):
+    u, y = records
+    with pytest.raises(ValueError, match="must have 2 outputs and 2 inputs"):
+        diagnose(stage.plant, u, y, 3, controller=stage.controller[0, :])
+
+
+def test_catalogue_effects_are_the_mimo_ones(stage):
+    plant = as_continuous_plant(stage.plant_continuous(), stage.sample_time,
+                                shape=(2, 2))
+    for effect, params in ((Gain(), {"gain": 2.0}), (Delay(), {"delay": 1e-3}),
+                           (LowPass(), {"cutoff": 200.0})):
+        changed = effect.apply(plant, params)
+        assert (changed.n_outputs, changed.n_inputs) == (2, 2)
+    context = EffectContext(plant, FREQS, stage.sample_time, None, None,
+                            np.zeros(FREQS.size), resonances=resonances(plant))
+    shifts = ModeShift().expand(context)
+    assert {round(s.target.frequency) for s in shifts} == {
+        round(m.frequency_hz) for m in stage.modes}
+
+
+def test_report_of_a_mimo_diagnosis(stage):
+    import json
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    experiment = mimo_hidden_effect_experiment(None, stage=stage, rng=7)
+    report = _diagnose(experiment, calibration_runs=2, debias_rounds=0)
+    assert report.std.shape == report.measured.shape == report.model_after.shape
+    assert report.spectrum_before.shape == report.frequencies.shape
+    data = json.loads(json.dumps(report.to_dict()))
+    assert data["calibration"]["n_entries"] == 4
+    assert "gap" in report.summary()
+    fig, axes = report.plot(entry=(1, 0))
+    assert "entry y1/u0" in axes[0].get_title()
+    with pytest.raises(ValueError, match="within \\(2, 2\\)"):
+        report.plot(entry=(2, 0))
