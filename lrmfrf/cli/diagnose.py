@@ -39,12 +39,13 @@ def add_parser(sub) -> None:
         "missing_mode, mode_shift), add them and report the gap before and after. "
         "The model is a Python file that defines `plant` (and optionally "
         "`controller`, for closed-loop data P/(1+CP)); the file is executed, so "
-        "only pass files you trust. MIMO: name one column per plant input and "
-        "output, in the plant's order (--input-column u1,u2 --output-column "
-        "y1,y2 for a plant with 2 outputs and 2 inputs; a controller then has "
-        "the plant's inputs as outputs and its outputs as inputs, u = r - C y); "
-        "all entries are compared together. Writes diagnosis.txt, diagnosis.json "
-        "and diagnosis.png (MIMO: a Bode grid of all entries) into --out (all or "
+        "only pass files you trust. MIMO: name one data column per plant input "
+        "and per plant output, in the plant's order, e.g. '--input-column u1,u2 "
+        "--output-column y1,y2' for a plant with 2 outputs and 2 inputs; the "
+        "controller then has the plant's inputs as outputs and its outputs as "
+        "inputs (u = r - C y, closed loop P (I + C P)^-1), and all entries are "
+        "compared together. Writes diagnosis.txt, diagnosis.json and "
+        "diagnosis.png (MIMO: a Bode grid of all entries) into --out (all or "
         "nothing).",
     )
     diag.add_argument("model", type=Path, metavar="MODEL.py",
@@ -156,7 +157,7 @@ def _check_dimensions(args, data, plant, controller) -> None:
     if shape is not None and shape != (n_y, n_u):
         columns = (f"--output-column {','.join(data.output_names)!r} and "
                    f"--input-column {','.join(data.input_names)!r}")
-        example = ", ".join(
+        example = " ".join(
             f"{option} {','.join(f'{prefix}{k + 1}' for k in range(count))}"
             for option, prefix, count in (("--output-column", "y", shape[0]),
                                           ("--input-column", "u", shape[1])))
