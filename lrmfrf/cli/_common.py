@@ -124,15 +124,17 @@ def add_data_options(parser, *, several: bool, sample_time_else: str = "",
     from ..io import DEFAULT_MAX_SAMPLES, TIME_COLUMNS
 
     columns = parser.add_argument_group("data columns")
-    several_channels = (", or several comma separated (e.g. u1,u2) for a "
-                        "MIMO record" if channels else "")
+    def several_channels(example: str) -> str:
+        return (f", or several comma separated (e.g. {example}) for a MIMO "
+                "record" if channels else "")
+
     columns.add_argument("--input-column", default="u", metavar="NAME",
                          help="column (CSV) or variable (.npz, .mat) of the fast "
-                         f"input (default u){several_channels}")
+                         f"input (default u){several_channels('u1,u2')}")
     columns.add_argument("--output-column", default="y", metavar="NAME",
                          help="column or variable of the slow output: M values, "
                          "or a fast-rate column with values every F rows and "
-                         f"empty cells between (default y){several_channels}")
+                         f"empty cells between (default y){several_channels('y1,y2')}")
     columns.add_argument("--time-column", default="auto", metavar="NAME",
                          help="CSV column of the time in seconds (ms, us when "
                          "named *_ms, *_us), checked against --sample-time; "

@@ -39,16 +39,23 @@ def add_parser(sub) -> None:
         "missing_mode, mode_shift), add them and report the gap before and after. "
         "The model is a Python file that defines `plant` (and optionally "
         "`controller`, for closed-loop data P/(1+CP)); the file is executed, so "
-        "only pass files you trust. Writes diagnosis.txt, diagnosis.json and "
-        "diagnosis.png into --out (all or nothing).",
+        "only pass files you trust. MIMO: name one data column per plant input "
+        "and per plant output, in the plant's order, e.g. '--input-column u1,u2 "
+        "--output-column y1,y2' for a plant with 2 outputs and 2 inputs; the "
+        "controller then has the plant's inputs as outputs and its outputs as "
+        "inputs (u = r - C y, closed loop P (I + C P)^-1), and all entries are "
+        "compared together. Writes diagnosis.txt, diagnosis.json and "
+        "diagnosis.png (MIMO: a Bode grid of all entries) into --out (all or "
+        "nothing).",
     )
     diag.add_argument("model", type=Path, metavar="MODEL.py",
-                      help="Python file defining `plant` (and `controller`)")
+                      help="Python file defining `plant` (and `controller`), "
+                      "SISO or MIMO python-control models")
     diag.add_argument("data", type=Path, metavar="DATA",
                       help=".csv (header row), .npz or .mat file")
     diag.add_argument("--out", type=output_folder, required=True, metavar="DIR",
                       help="output folder (created if needed)")
-    add_data_options(diag, several=False,
+    add_data_options(diag, several=False, channels=True,
                      sample_time_else=", else the dt of a discrete-time plant")
     diag.add_argument("--open-loop", action="store_true",
                       help="ignore `controller`: the data are the plant itself")
@@ -90,15 +97,9 @@ def run(args, parser) -> int:
     from ..discrepancy import diagnose
     from ..io import atomic_group, check_output_path
 
-    for option, text in (("--input-column", args.input_column),
-                         ("--output-column", args.output_column)):
-        if "," in text:
-            raise CLIUsageError(
-                f"{option} {text!r} names several channels, but diagnose compares "
-                "one input with one output. Pass one column name each"
-            )
     plant, controller = load_model(args.model, args.open_loop)
     data = read_data(args.data, args)
+    _check_dimensions(args, data, plant, controller)
     check_out_folder(args.out)
     protect = [args.data, args.model]
     outputs = [args.out / name for name in DIAGNOSE_OUTPUTS]
@@ -110,17 +111,95 @@ def run(args, parser) -> int:
                           controller=controller, **keywords)
     except (ValueError, TypeError) as exc:
         raise CLIError(f"{args.data}: {one_line(exc)}") from exc
-    summary = report.summary()
+    summary, content = report.summary(), report.to_dict()
+    if _is_mimo(data):
+        summary, content = _with_channels(summary, content, data)
     files = [summary.encode("utf-8"),
-             json.dumps(report.to_dict(), indent=1).encode("utf-8")]
+             json.dumps(content, indent=1).encode("utf-8")]
     if not args.no_plot:
-        files.append(_figure_png(report))
+        files.append(_figure_png(report, data))
     with atomic_group(overwrite=args.force, protect=protect) as group:
         for path, content in zip(outputs, files, strict=False):
             group.write_bytes(path, content)
     if not args.quiet:
         say(summary)
     return 0
+
+
+def _channels(data) -> tuple[int, int]:
+    """The data's ``(n_y, n_u)``: how many output and input columns."""
+    return len(data.output_names), len(data.input_names)
+
+
+def _is_mimo(data) -> bool:
+    return _channels(data) != (1, 1)
+
+
+def _count(number: int, what: str) -> str:
+    return f"{number} {what}" + ("" if number == 1 else "s")
+
+
+def _model_channels(model) -> tuple[int, int] | None:
+    """A python-control model's ``(outputs, inputs)``, None for other objects
+    (``diagnose`` refuses those with its own message)."""
+    outputs, inputs = (getattr(model, name, None) for name in ("noutputs", "ninputs"))
+    if isinstance(outputs, int) and isinstance(inputs, int):
+        return outputs, inputs
+    return None
+
+
+def _check_dimensions(args, data, plant, controller) -> None:
+    """The plant must have one output per output column and one input per
+    input column; the controller the plant's inputs as outputs and its
+    outputs as inputs (u = r - C y)."""
+    n_y, n_u = _channels(data)
+    shape = _model_channels(plant)
+    if shape is not None and shape != (n_y, n_u):
+        columns = (f"--output-column {','.join(data.output_names)!r} and "
+                   f"--input-column {','.join(data.input_names)!r}")
+        example = " ".join(
+            f"{option} {','.join(f'{prefix}{k + 1}' for k in range(count))}"
+            for option, prefix, count in (("--output-column", "y", shape[0]),
+                                          ("--input-column", "u", shape[1])))
+        raise CLIUsageError(
+            f"{args.model}: `plant` has {_count(shape[0], 'output')} and "
+            f"{_count(shape[1], 'input')}, but {columns} name "
+            f"{_count(n_y, 'output column')} and {_count(n_u, 'input column')}. "
+            "Name one column per plant output and input, comma separated in the "
+            f"plant's order (e.g. {example}), or use a plant with "
+            f"{_count(n_y, 'output')} and {_count(n_u, 'input')}"
+        )
+    if controller is None or shape is None:
+        return
+    given = _model_channels(controller)
+    if given is not None and given != (shape[1], shape[0]):
+        raise CLIError(
+            f"{args.model}: `controller` has {_count(given[0], 'output')} and "
+            f"{_count(given[1], 'input')}, but with a plant of "
+            f"{_count(shape[0], 'output')} and {_count(shape[1], 'input')} it must "
+            f"have {_count(shape[1], 'output')} (the plant's inputs) and "
+            f"{_count(shape[0], 'input')} (the plant's outputs): u = r - C y. Fix "
+            "`controller` in the model file, or pass --open-loop if the data are "
+            "the plant's own (no feedback)."
+        )
+
+
+def _with_channels(summary: str, content: dict, data) -> tuple[str, dict]:
+    """Name the data's columns in a MIMO report: a line after the summary's
+    ``compared:`` line, and ``output_columns``/``input_columns`` in the JSON."""
+    n_y, n_u = _channels(data)
+    line = (f"  entries: {_count(n_y, 'output')} x {_count(n_u, 'input')}, "
+            "outputs " + ", ".join(f"{k}={name}" for k, name in
+                                   enumerate(data.output_names))
+            + "; inputs " + ", ".join(f"{k}={name}" for k, name in
+                                      enumerate(data.input_names))
+            + "; gaps and tests over all entries together")
+    lines = summary.split("\n")
+    lines.insert(min(2, len(lines)), line)
+    content = {**content, "n_outputs": n_y, "n_inputs": n_u,
+               "output_columns": list(data.output_names),
+               "input_columns": list(data.input_names)}
+    return "\n".join(lines), content
 
 
 def _diagnose_keywords(args, data, plant, controller) -> dict:
@@ -151,13 +230,19 @@ def _model_sample_time(plant) -> float | None:
     return float(dt)
 
 
-def _figure_png(report) -> bytes:
+def _figure_png(report, data) -> bytes:
+    """SISO: :meth:`DiagnosisReport.plot`; MIMO: :meth:`DiagnosisReport.plot_grid`
+    with the data's column names."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    figure, _ = report.plot()
+    if _is_mimo(data):
+        figure, _ = report.plot_grid(output_labels=data.output_names,
+                                     input_labels=data.input_names)
+    else:
+        figure, _ = report.plot()
     try:
         return png_bytes(figure, dpi=110)
     finally:

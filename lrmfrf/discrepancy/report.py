@@ -245,38 +245,8 @@ class DiagnosisReport:
         ax = renamed_keyword(ax, axes, new="ax", old="axes")
         fig, axes = _diagnosis_axes(ax)
         mag, phase, disc = axes
-        f = self.frequencies
-        drawn = {}
-        measured, std, model_before, model_after = self._entry(entry)
-        meas = np.abs(measured)
-        low = np.maximum(meas - 2 * std, meas * 1e-3)
-        drawn["band"] = mag.fill_between(f, _db(low), _db(meas + 2 * std),
-                                         color="0.8", label="measurement ± 2 std")
-        (drawn["measured"],) = mag.plot(f, _db(meas), "k.", ms=2,
-                                        label="measurement")
-        (drawn["before"],) = mag.plot(f, _db(np.abs(model_before)), "C0",
-                                      label="model")
-        (drawn["after"],) = mag.plot(f, _db(np.abs(model_after)), "C3--",
-                                     label="updated model")
-        curves = np.concatenate([_db(meas), _db(np.abs(model_before)),
-                                 _db(np.abs(model_after))])
-        curves = curves[np.isfinite(curves)]
-        if curves.size:  # the band's lower edge can dive far below the data
-            mag.set_ylim(bottom=curves.min() - 20.0)
-        reference = np.degrees(np.unwrap(np.angle(model_after)))
-        before = _shifted_to(np.degrees(np.unwrap(np.angle(model_before))),
-                             reference[0])
-        phase.plot(f, _nearest_branch(np.degrees(np.angle(measured)),
-                                      reference), "k.", ms=2)
-        phase.plot(f, before, "C0")
-        phase.plot(f, reference, "C3--")
-        disc.plot(f, self.spectrum_before, "C0", label="before")
-        disc.plot(f, self.spectrum_after, "C3", label="after")
-        disc.axhline(self.threshold_before, color="C0", ls=":",
-                     label="threshold before")
-        disc.axhline(self.threshold_after, color="C3", ls=":",
-                     label="threshold after")
-        disc.set_yscale("log")
+        drawn = _draw_entry(mag, phase, self.frequencies, *self._entry(entry))
+        self._draw_discrepancy(disc)
         for axis in axes:
             axis.axvline(self.slow_nyquist, color="0.3", ls=":", lw=1.2,
                          label=f"slow Nyquist {self.slow_nyquist:.4g} Hz"
@@ -285,7 +255,6 @@ class DiagnosisReport:
             axis.grid(True, which="major", alpha=0.4)
         mag.set_ylabel(f"Magnitude [dB re 1 {units}]" if units else "Magnitude [dB]")
         phase.set_ylabel("Phase [deg]")
-        disc.set_ylabel("Discrepancy [whitened |ΔG|²]")
         disc.set_xlabel("Frequency [Hz]")
         mag.legend(loc="best", fontsize="small")
         disc.legend(loc="best", fontsize="small")
@@ -295,6 +264,93 @@ class DiagnosisReport:
         mag.set_title(f"Diagnosis: {names}{where}")
         drawn.update(figure=fig, axes=list(axes))
         return _PlotResult(fig, axes, drawn)
+
+    def plot_grid(self, *, units: str | None = None, output_labels=None,
+                  input_labels=None):
+        """Bode plots of all FRF entries in one figure, and the discrepancy.
+
+        The MIMO view of :meth:`plot`: for each output a row of magnitudes and
+        a row of phases, one column per input (entry ``(o, i)`` is input ``i``
+        to output ``o``), each with the measurement, its +/-2 std band, the
+        model and the updated model as in :meth:`plot`; below, spanning the
+        columns, the discrepancy spectra before and after (of all entries
+        together: the tests and gaps are over all entries) with their
+        thresholds. A SISO report gives a 1 x 1 grid.
+
+        Parameters
+        ----------
+        units : str, optional
+            Units of the plant, as in :meth:`plot`.
+        output_labels, input_labels : sequence of str, optional
+            Names of the outputs and inputs (e.g. the data's column names);
+            default ``y0, y1, ...`` and ``u0, u1, ...``.
+
+        Returns
+        -------
+        fig : matplotlib.figure.Figure
+        axes : tuple ``(magnitude, phase, discrepancy)``
+            ``magnitude`` and ``phase`` are arrays of Axes of shape
+            ``(n_y, n_u)``; ``discrepancy`` is one Axes.
+        """
+        from ..plotting._draw import _pyplot
+
+        n_y, n_u = (1, 1) if self.measured.ndim == 1 else self.measured.shape[:2]
+        outputs = _channel_labels(output_labels, n_y, "y", "output_labels")
+        inputs = _channel_labels(input_labels, n_u, "u", "input_labels")
+        fig = _pyplot().figure(figsize=(3.4 * n_u + 1.6, 3.6 * n_y + 2.6),
+                               layout="constrained")
+        grid = fig.add_gridspec(2 * n_y + 1, n_u,
+                                height_ratios=[1.25, 0.9] * n_y + [1.3])
+        mag = np.empty((n_y, n_u), dtype=object)
+        phase = np.empty((n_y, n_u), dtype=object)
+        first = None
+        for o, i in np.ndindex(n_y, n_u):
+            mag[o, i] = fig.add_subplot(grid[2 * o, i], sharex=first)
+            first = first or mag[o, i]
+            phase[o, i] = fig.add_subplot(grid[2 * o + 1, i], sharex=first)
+            _draw_entry(mag[o, i], phase[o, i], self.frequencies,
+                        *self._entry(None if self.measured.ndim == 1 else (o, i)))
+            mag[o, i].set_title(f"{inputs[i]} → {outputs[o]}", fontsize="small")
+            mag[o, i].tick_params(labelbottom=False)
+            if i == 0:
+                mag[o, i].set_ylabel(f"|G| [dB re 1 {units}]" if units
+                                     else "|G| [dB]")
+                phase[o, i].set_ylabel("Phase [deg]")
+            if o < n_y - 1:
+                phase[o, i].tick_params(labelbottom=False)
+        disc = fig.add_subplot(grid[2 * n_y, :], sharex=first)
+        self._draw_discrepancy(disc)
+        if n_y * n_u > 1:
+            disc.set_title(f"Discrepancy spectrum: mean over the {n_y * n_u} "
+                           "entries (what the tests use)", fontsize="small")
+        for axis in (*mag.ravel(), *phase.ravel(), disc):
+            axis.axvline(self.slow_nyquist, color="0.3", ls=":", lw=1.2,
+                         label=f"slow Nyquist {self.slow_nyquist:.4g} Hz"
+                         if axis is first else None)
+            axis.set_xscale("log")
+            axis.grid(True, which="major", alpha=0.4)
+        disc.set_xlabel("Frequency [Hz]")
+        handles, names = first.get_legend_handles_labels()
+        fig.legend(handles, names, loc="outside lower center", ncol=len(names),
+                   fontsize="small", markerscale=3)
+        disc.legend(loc="best", fontsize="small")
+        effects = ", ".join(self.effects) or "no findings"
+        over = f" over all {n_y * n_u} entries" if n_y * n_u > 1 else ""
+        fig.suptitle(f"Diagnosis: {effects} (whitened RMS gap{over}: "
+                     f"{self.gap_before:.3g} before, {self.gap_after:.3g} after)")
+        return fig, (mag, phase, disc)
+
+    def _draw_discrepancy(self, disc) -> None:
+        """The discrepancy spectra before and after, with their thresholds."""
+        f = self.frequencies
+        disc.plot(f, self.spectrum_before, "C0", label="before")
+        disc.plot(f, self.spectrum_after, "C3", label="after")
+        disc.axhline(self.threshold_before, color="C0", ls=":",
+                     label="threshold before")
+        disc.axhline(self.threshold_after, color="C3", ls=":",
+                     label="threshold after")
+        disc.set_yscale("log")
+        disc.set_ylabel("Discrepancy [whitened |ΔG|²]")
 
     def _entry(self, entry):
         """The measured, std and model arrays of one entry (SISO: as they are)."""
@@ -336,6 +392,46 @@ def _diagnosis_axes(ax):
     from ..plotting._draw import axes_column
 
     return axes_column(ax, ("magnitude", "phase", "discrepancy"), figsize=(8, 9))
+
+
+def _draw_entry(mag, phase, f, measured, std, model_before, model_after) -> dict:
+    """Magnitude (measurement, its +/-2 std band, model, updated model) and
+    phase of one FRF entry; returns the drawn artists by name."""
+    drawn = {}
+    meas = np.abs(measured)
+    low = np.maximum(meas - 2 * std, meas * 1e-3)
+    drawn["band"] = mag.fill_between(f, _db(low), _db(meas + 2 * std),
+                                     color="0.8", label="measurement ± 2 std")
+    (drawn["measured"],) = mag.plot(f, _db(meas), "k.", ms=2,
+                                    label="measurement")
+    (drawn["before"],) = mag.plot(f, _db(np.abs(model_before)), "C0",
+                                  label="model")
+    (drawn["after"],) = mag.plot(f, _db(np.abs(model_after)), "C3--",
+                                 label="updated model")
+    curves = np.concatenate([_db(meas), _db(np.abs(model_before)),
+                             _db(np.abs(model_after))])
+    curves = curves[np.isfinite(curves)]
+    if curves.size:  # the band's lower edge can dive far below the data
+        mag.set_ylim(bottom=curves.min() - 20.0)
+    reference = np.degrees(np.unwrap(np.angle(model_after)))
+    before = _shifted_to(np.degrees(np.unwrap(np.angle(model_before))),
+                         reference[0])
+    phase.plot(f, _nearest_branch(np.degrees(np.angle(measured)),
+                                  reference), "k.", ms=2)
+    phase.plot(f, before, "C0")
+    phase.plot(f, reference, "C3--")
+    return drawn
+
+
+def _channel_labels(labels, count: int, prefix: str, name: str) -> list[str]:
+    """``labels`` as ``count`` strings, default ``prefix0, prefix1, ...``."""
+    if labels is None:
+        return [f"{prefix}{index}" for index in range(count)]
+    labels = [str(label) for label in labels]
+    if len(labels) != count:
+        raise ValueError(f"`{name}` must have {count} names (one per channel); "
+                         f"got {len(labels)}: {labels!r}.")
+    return labels
 
 
 def _db(magnitude: np.ndarray) -> np.ndarray:
