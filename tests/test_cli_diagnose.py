@@ -396,3 +396,15 @@ def test_plot_grid_draws_every_entry_with_the_column_names():
     fig, (mag, _, _) = _synthetic_report(()).plot_grid()
     assert mag.shape == (1, 1) and mag[0, 0].get_title() == "u0 → y0"
     plt.close(fig)
+
+
+def test_summary_names_the_mimo_closed_loop():
+    """The summary's ``compared:`` line gives the loop that was measured: the
+    matrix ``P (I + C P)^-1`` for MIMO, ``P/(1+CP)`` for SISO."""
+    import dataclasses
+
+    mimo = dataclasses.replace(_synthetic_report((2, 2)), closed_loop=True)
+    siso = dataclasses.replace(_synthetic_report(()), closed_loop=True)
+    assert "compared: closed loop P (I + C P)^-1," in mimo.summary()
+    assert "compared: closed loop P/(1+CP)," in siso.summary()
+    assert "compared: open loop (plant)," in _synthetic_report((2, 2)).summary()

@@ -153,7 +153,10 @@ class DiagnosisReport:
     def summary(self) -> str:
         """Plain-text summary: verdict, gaps and one paragraph per finding."""
         lines = ["Model-vs-measurement diagnosis"]
-        loop = "closed loop P/(1+CP)" if self.closed_loop else "open loop (plant)"
+        mimo = self.measured.ndim > 1
+        loop = ("open loop (plant)" if not self.closed_loop
+                else "closed loop P (I + C P)^-1" if mimo
+                else "closed loop P/(1+CP)")
         lines.append(
             f"  compared: {loop}, {self.frequencies.size} bins up to "
             f"{self.frequencies.max():.4g} Hz (slow Nyquist {self.slow_nyquist:.4g} Hz)"
