@@ -408,3 +408,16 @@ def test_summary_names_the_mimo_closed_loop():
     assert "compared: closed loop P (I + C P)^-1," in mimo.summary()
     assert "compared: closed loop P/(1+CP)," in siso.summary()
     assert "compared: open loop (plant)," in _synthetic_report((2, 2)).summary()
+
+
+def test_diagnose_steady_state_flag(plain_data, capsys, monkeypatch):
+    """--steady-state reaches diagnose(steady_state=True); without it the
+    keyword is not passed (diagnose's default, a start from rest)."""
+    calls = []
+    _stub(monkeypatch, "rng=None, sample_time=None, steady_state=False", calls)
+    for flag, out in ((["--steady-state"], "a"), ([], "b")):
+        status, _, err = _main(["diagnose", plain_data / "model.py",
+                                plain_data / "plain.npz", "--F", "3", *flag,
+                                "--no-plot", "--out", plain_data / out], capsys)
+        assert status == 0, err
+    assert [c["steady_state"] for c in calls] == [True, False]

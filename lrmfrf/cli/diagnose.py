@@ -59,6 +59,11 @@ def add_parser(sub) -> None:
                      sample_time_else=", else the dt of a discrete-time plant")
     diag.add_argument("--open-loop", action="store_true",
                       help="ignore `controller`: the data are the plant itself")
+    diag.add_argument("--steady-state", action="store_true",
+                      help="the records are the periodic steady state of "
+                      "periodic inputs (transient periods discarded), not a "
+                      "start from rest: calibrate them the same way (a stable "
+                      "measured system is needed)")
     diag.add_argument("--seed", type=nonnegative_int, default=0,
                       help="seed (rng) of the calibration simulations (default 0)")
     diag.add_argument("--smoothing-bins", type=positive_int, default=None,
@@ -203,11 +208,14 @@ def _with_channels(summary: str, content: dict, data) -> tuple[str, dict]:
 
 
 def _diagnose_keywords(args, data, plant, controller) -> dict:
-    """``diagnose``'s keywords: the seed, the smoothing width and the sample
-    time (from the file, else from the model's or the controller's ``dt``)."""
+    """``diagnose``'s keywords: the seed, the smoothing width, steady state
+    (only when asked) and the sample time (from the file, else from the
+    model's or the controller's ``dt``)."""
     keywords = {"rng": args.seed}
     if args.smoothing_bins is not None:
         keywords["smoothing_bins"] = args.smoothing_bins
+    if args.steady_state:
+        keywords["steady_state"] = True
     sample_time = data.sample_time
     for model in (plant, controller):
         if sample_time is None:
