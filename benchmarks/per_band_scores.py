@@ -61,8 +61,8 @@ averaged as the library averages its std (mean of the logs) or as the RMS
 target does (log of the mean square), with and without the library's
 smoothing. On seeds 1-8 the mean-of-logs form stays at 0.94-0.98x the best
 single setting's RMS error even with the truth (the library's estimated score
-0.925x), the mean-square form reaches 0.79-0.84x; seeds 11-18: 0.83-0.87x and
-0.74-0.79x (``benchmarks/results/per_band_oracle_seeds*.txt``).
+0.925x), the mean-square form reaches 0.79-0.88x; seeds 11-18: 0.83-0.87x and
+0.74-0.83x (``benchmarks/results/per_band_oracle_seeds*.txt``).
 
 For each variant: the RMS relative error of the 2x2 matrix over the bins
 against the best single setting (lowest RMS, known from the truth), and the
