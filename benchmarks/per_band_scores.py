@@ -62,7 +62,9 @@ target does (log of the mean square), with and without the library's
 smoothing. On seeds 1-8 the mean-of-logs form stays at 0.94-0.98x the best
 single setting's RMS error even with the truth (the library's estimated score
 0.925x), the mean-square form reaches 0.79-0.88x; seeds 11-18: 0.83-0.87x and
-0.74-0.83x (``benchmarks/results/per_band_oracle_seeds*.txt``).
+0.74-0.83x (``benchmarks/results/per_band_oracle_seeds*.txt``). Both are
+upper bounds for a rule that sees the data only: the truth also tells which
+candidate's noise realisation happened to fall small at a bin.
 
 For each variant: the RMS relative error of the 2x2 matrix over the bins
 against the best single setting (lowest RMS, known from the truth), and the
