@@ -398,6 +398,39 @@ def test_default_std_compiles_sooner_than_lemma2(monkeypatch):
     assert backends == {"eiv": "numba", "lemma2": "numpy", "lpm": "numpy"}
 
 
+@pytest.mark.skipif(not _compiled.AVAILABLE, reason="needs numba")
+@pytest.mark.parametrize("params", [{"std_method": "hc"},
+                                    {"std_method": "eiv_pooled"},
+                                    {"sk_iterations": 1}])
+def test_whole_fits_keep_the_closed_form_threshold(monkeypatch, params):
+    """Fits that are not streamed (refinement, the std routes other than
+    Lemma 2 and eiv) solve the closed form alone with fit_local_models, whose
+    numpy path has no eiv terms to pay for: at 2100 windows it stays on numpy
+    as before EIV_NUMPY_COST (the eiv terms of those routes choose their own
+    backend). It was compiled from 2048 windows, changing their results at
+    round-off for no saving."""
+    from lrmfrf import LRMBeyondNyquist
+    from lrmfrf.estimators import local
+
+    monkeypatch.delenv("LRMFRF_DISABLE_NUMBA", raising=False)
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def record(*args, backend="auto", **kwargs):
+        seen.append(backend)
+        raise Stop
+
+    monkeypatch.setattr(local, "fit_local_models", record)
+    F, M = 3, 4198  # M // 2 + 1 = 2100 slow bins
+    rng = np.random.default_rng(3)
+    with pytest.raises(Stop):
+        LRMBeyondNyquist(**params).fit(rng.standard_normal(F * M),
+                                       rng.standard_normal(M), F)
+    assert seen == ["numpy"]
+
+
 def test_qr_fallback_in_bounded_batches(monkeypatch, backend):
     """Every window failing the fast path (no input in band 2): the QR
     fallback runs in batches of ``qr_chunk_size`` and flags all of them."""
