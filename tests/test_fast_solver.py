@@ -1000,3 +1000,39 @@ def test_fit_interrupted_between_chunks_gives_the_blas_threads_back(
     est.fit(u, y, 3)  # and the next fit is whole
     assert np.isfinite(est.frf_).all()
     assert blas_threads() == before
+
+
+def test_calibrated_fits_interrupted_in_the_terms_give_the_blas_threads_back(
+    two_blas_threads, monkeypatch
+):
+    """iter_calibrated_fits (public) computes each chunk's eiv terms in its
+    own body while its closed-form generator, a local, is suspended inside
+    the single-threaded-BLAS section. An exception there (a KeyboardInterrupt,
+    a MemoryError) ended the outer generator but left the inner one suspended
+    for as long as the traceback kept the frame: BLAS stayed on one thread
+    (before the fix: ``[1, 1] == [2, 2]``), the case of the fit fixed in
+    894792c one level down."""
+    from lrmfrf import _blas_threads, uncertainty
+    from lrmfrf.local_models import OneSidedSpectra
+
+    before = two_blas_threads
+    rng = np.random.default_rng(3)
+    u = multisine(600, rng=rng)
+    y = simulate_resonant(u, 3, 0.002, rng)
+    spectra = OneSidedSpectra.from_records(u[None, None], y[None, None], 3)
+    layout = LocalModelLayout(F=3, half_window=12, num_degree=2,
+                              transient_degree=2, den_degree=2)
+
+    def interrupt(*args, **kwargs):
+        raise KeyboardInterrupt("in the eiv terms")
+
+    monkeypatch.setattr(uncertainty, "eiv_terms", interrupt)
+    with pytest.raises(KeyboardInterrupt, match="eiv terms") as info:
+        list(uncertainty.iter_calibrated_fits(spectra, layout, "eiv"))
+    assert info.tb is not None  # the generators' frames stay alive
+    assert blas_threads() == before
+    assert not _blas_threads._open_sections
+    monkeypatch.undo()
+    fits = list(uncertainty.iter_calibrated_fits(spectra, layout, "eiv"))
+    assert np.isfinite(fits[0][1].system_var).any()
+    assert blas_threads() == before
