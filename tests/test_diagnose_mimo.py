@@ -231,3 +231,159 @@ def test_report_of_a_mimo_diagnosis(stage):
     assert "entry y1/u0" in axes[0].get_title()
     with pytest.raises(ValueError, match="within \\(2, 2\\)"):
         report.plot(entry=(2, 0))
+
+
+# ---------------------------------------------------------------------------
+# Known answers of the MIMO search internals (independent constructions)
+# ---------------------------------------------------------------------------
+
+
+#: A static input coupling and controller mixing that make the 2x2 loop
+#: generic: the stage itself is symmetric (collocated, P = P^T) and its
+#: controller a scalar times the identity (C P = P C), so transposed or
+#: swapped factors (S_o for S_i, (I + C P)^-1 P for P (I + C P)^-1, a left for
+#: a right singular vector) give the same values on it and no test of it can
+#: see them.
+COUPLING = np.array([[1.0, 0.25], [-0.1, 0.8]])
+MIXING = np.array([[0.9, 0.15], [-0.05, 1.1]])
+
+
+def _static(matrix, dt=None):
+    return control.ss(np.zeros((0, 0)), np.zeros((0, 2)), np.zeros((2, 0)), matrix,
+                      *(() if dt is None else (dt,)))
+
+
+@pytest.fixture(scope="module")
+def skewed(stage):
+    """``(plant, controller)``: the stage's plant times COUPLING (continuous)
+    and MIXING times its controller (a stable loop, not symmetric)."""
+    plant = control.ss(stage.plant_continuous()) * _static(COUPLING)
+    controller = _static(MIXING, stage.sample_time) * stage.controller
+    loop = control.feedback(control.sample_system(plant, stage.sample_time),
+                            controller, sign=-1)
+    assert np.max(np.abs(np.linalg.eigvals(loop.A))) < 1.0
+    return plant, controller
+
+
+def _loop_problem(stage, skewed):
+    """The closed-loop FitProblem of the skewed 2x2 loop on FREQS."""
+    from lrmfrf.discrepancy.fit import FitProblem
+
+    plant = as_continuous_plant(skewed[0], stage.sample_time, shape=(2, 2))
+    P = discrete_response(plant, FREQS, stage.sample_time)
+    C = frequency_response(skewed[1], FREQS, stage.sample_time)
+    assert np.abs(P - P.transpose(1, 0, 2)).max() > 0.1 * np.abs(P).max()
+    shape = (2, 2, FREQS.size)
+    problem = FitProblem(FREQS, closed_loop_response(P, C), np.ones(shape),
+                         stage.sample_time, C, np.zeros(shape, complex),
+                         np.ones(shape), 1.0)
+    return plant, P, problem
+
+
+def test_closed_loop_response_of_a_skewed_loop(stage, skewed):
+    """P (I + C P)^-1 against python-control's feedback on a loop where the
+    order of the factors matters."""
+    _, P, problem = _loop_problem(stage, skewed)
+    loop = control.feedback(control.sample_system(skewed[0], stage.sample_time),
+                            skewed[1], sign=-1)
+    ref = loop(_z(FREQS, stage.sample_time))
+    np.testing.assert_allclose(problem.measured, ref, atol=1e-9 * np.abs(ref).max())
+
+
+def test_plant_level_sensitivities_are_the_loop_derivative(stage, skewed):
+    """dG = S_o dP S_i for G = P (I + C P)^-1 (central differences along a
+    random complex direction), and the measured plant G (I - C G)^-1 is P."""
+    from lrmfrf.discrepancy._search import _plant_level
+
+    _, P, problem = _loop_problem(stage, skewed)
+    (S_o, S_i), plant_seen = _plant_level(problem, P)
+    rng = np.random.default_rng(0)
+    dP = rng.standard_normal(P.shape) + 1j * rng.standard_normal(P.shape)
+    h = 1e-6 * np.abs(P).max(axis=(0, 1))  # per bin: P spans decades
+    C = problem.controller
+    numeric = (closed_loop_response(P + h * dP, C)
+               - closed_loop_response(P - h * dP, C)) / (2 * h)
+    linear = np.einsum("iak,abk,bjk->ijk", S_o, dP, S_i)
+    scale = np.abs(linear).max(axis=(0, 1))
+    assert np.max(np.abs(linear - numeric) / scale) < 1e-6
+    np.testing.assert_allclose(plant_seen, P, atol=1e-12 * np.abs(P).max())
+
+
+def test_mode_shape_guess_is_the_rank_one_residue(stage, skewed):
+    """The missing mode's starting shape c b^T is the residue of a small
+    rank-one mode seen through the closed loop (linearised: 1e-4 of the
+    plant's scale, so the guess is exact to ~1e-4)."""
+    from lrmfrf.discrepancy._search import _plant_level
+    from lrmfrf.discrepancy.effects import _mode_shape_guess, _unit_vector, add_mode
+
+    plant, P, problem = _loop_problem(stage, skewed)
+    sensitivity, _ = _plant_level(problem, P)
+    c, b = np.array([0.8, -1.3]) * 1e-4, _unit_vector([2.0])  # b = (cos 2, sin 2)
+    with_mode = add_mode(plant, 520.0, 0.01, c, 0.0, input_vector=b)
+    residual = closed_loop_response(
+        discrete_response(with_mode, FREQS, stage.sample_time), problem.controller
+    ) - problem.measured
+    std = np.full(residual.shape, 1e-3)
+    context = EffectContext(plant, FREQS, stage.sample_time, None, None,
+                            np.zeros(FREQS.size), sensitivity=sensitivity,
+                            residual=residual, std=std)
+    c_guess, b_guess = _mode_shape_guess(context, 520.0, 0.01)
+    assert np.linalg.norm(b_guess) == pytest.approx(1.0)
+    np.testing.assert_allclose(np.outer(c_guess, b_guess), np.outer(c, b),
+                               rtol=0, atol=1e-3 * np.abs(c).max())
+
+
+def test_series_effects_filter_every_input_alike(stage):
+    """Low-pass and model error: the plant times the same SISO filter on each
+    input channel (python-control: plant * append(H, H))."""
+    from lrmfrf.discrepancy import ModelError
+    from lrmfrf.discrepancy._models import ContinuousPlant
+
+    plant = as_continuous_plant(stage.plant_continuous(), stage.sample_time,
+                                shape=(2, 2))
+    tau = 1.0 / (2 * np.pi * 200.0)
+    lag = control.ss(control.tf([1.0], [tau, 1.0]))
+    params = {"zero_frequency": 700.0, "zero_damping": 0.2,
+              "pole_frequency": 800.0, "pole_damping": 0.4}
+    unit = ContinuousPlant(np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0)),
+                           np.ones((1, 1)))
+    one = ModelError().apply(unit, params)  # the SISO filter alone
+    H = control.ss(one.A, one.B, one.C, one.D)
+    z = _z(FREQS, stage.sample_time)
+    for effect, p, filt in ((LowPass(), {"cutoff": 200.0}, lag),
+                            (ModelError(), params, H)):
+        truth = control.sample_system(
+            control.ss(stage.plant_continuous()) * control.append(filt, filt),
+            stage.sample_time)
+        ref = truth(z)
+        np.testing.assert_allclose(
+            discrete_response(effect.apply(plant, p), FREQS, stage.sample_time),
+            ref, atol=1e-9 * np.abs(ref).max())
+
+
+def test_shift_mode_numerator_with_a_velocity_term(stage):
+    """A mode with b1 = C_m B_m != 0 (a velocity output): shift_mode gives the
+    numerator its docstring says, s b1 / alpha + b0 - (beta / alpha) b1 over
+    the new pole pair (alpha = Im p' / Im p, beta = Re p' - alpha Re p)."""
+    w0, z0, w1, z1 = 2 * np.pi * 400.0, 0.01, 2 * np.pi * 450.0, 0.03
+    b = np.array([0.7, 0.3])
+    position, velocity = np.array([16.0, -6.4]), np.array([0.2, 0.5])
+
+    def mode(w, zeta, pos, vel):  # (s vel + pos) b^T / (s^2 + 2 zeta w s + w^2)
+        return control.ss(np.array([[0.0, 1.0], [-w * w, -2 * zeta * w]]),
+                          np.vstack([np.zeros(2), b]), np.column_stack([pos, vel]),
+                          np.zeros((2, 2)))
+
+    rest = control.ss(stage.plant_continuous())
+    plant = as_continuous_plant(control.parallel(rest, mode(w0, z0, position, velocity)),
+                                stage.sample_time, shape=(2, 2))
+    shifted = shift_mode(plant, 400.0, z0, 450.0, z1)
+    p = complex(-z0 * w0, w0 * np.sqrt(1 - z0**2))
+    q = complex(-z1 * w1, w1 * np.sqrt(1 - z1**2))
+    alpha = q.imag / p.imag
+    beta = q.real - alpha * p.real
+    truth = control.parallel(rest, mode(w1, z1, position - beta / alpha * velocity,
+                                         velocity / alpha))
+    ref = control.sample_system(truth, stage.sample_time)(_z(FREQS, stage.sample_time))
+    np.testing.assert_allclose(discrete_response(shifted, FREQS, stage.sample_time),
+                               ref, atol=1e-8 * np.abs(ref).max())

@@ -814,3 +814,28 @@ def test_effect_base_class_is_abstract():
                  lambda: effect.apply(plant, {})):
         with pytest.raises(NotImplementedError):
             call()
+
+
+def test_mode_shift_candidates_of_a_non_minimal_siso_model_can_be_applied():
+    """A SISO model whose every pole pair appears twice (the same transfer
+    function built non-minimally, e.g. a sum of parallel parts sharing a
+    mode): the search fits every ModeShift candidate it expands and builds its
+    plant at the end (fit_candidate's plant_of(x), outside the residual's
+    guard), so a candidate that cannot be applied stopped diagnose with
+    "could not isolate the mode ... (repeated pole)" (5715b12: a suspended
+    random stage, P2 = 0.5 P + 0.5 P). Repeated pole pairs are not expanded
+    now (e3ea14f, for MIMO stages): whatever is expanded can be applied."""
+    from lrmfrf.discrepancy import ModeShift
+    from lrmfrf.discrepancy.effects import EffectContext
+
+    w = 2 * np.pi * 300.0
+    mode = control.ss(control.tf([w * w], [1.0, 2 * 0.01 * w, w * w]))
+    suspension = control.ss(control.tf([1.0], [1.0, 2 * 0.1 * 30.0, 900.0]))
+    plant = as_continuous_plant(suspension + mode + 0.5 * mode, 1e-4)
+    found = resonances(plant)
+    assert [round(r.frequency) for r in found].count(300) == 2
+    freqs = np.linspace(1.0, 4000.0, 50)
+    context = EffectContext(plant, freqs, 1e-4, None, None, np.zeros(freqs.size),
+                            resonances=found)
+    for effect in ModeShift().expand(context):
+        effect.apply(plant, {"frequency": 320.0, "damping": 0.02})

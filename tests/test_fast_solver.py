@@ -398,6 +398,39 @@ def test_default_std_compiles_sooner_than_lemma2(monkeypatch):
     assert backends == {"eiv": "numba", "lemma2": "numpy", "lpm": "numpy"}
 
 
+@pytest.mark.skipif(not _compiled.AVAILABLE, reason="needs numba")
+@pytest.mark.parametrize("params", [{"std_method": "hc"},
+                                    {"std_method": "eiv_pooled"},
+                                    {"sk_iterations": 1}])
+def test_whole_fits_keep_the_closed_form_threshold(monkeypatch, params):
+    """Fits that are not streamed (refinement, the std routes other than
+    Lemma 2 and eiv) solve the closed form alone with fit_local_models, whose
+    numpy path has no eiv terms to pay for: at 2100 windows it stays on numpy
+    as before EIV_NUMPY_COST (the eiv terms of those routes choose their own
+    backend). It was compiled from 2048 windows, changing their results at
+    round-off for no saving."""
+    from lrmfrf import LRMBeyondNyquist
+    from lrmfrf.estimators import local
+
+    monkeypatch.delenv("LRMFRF_DISABLE_NUMBA", raising=False)
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def record(*args, backend="auto", **kwargs):
+        seen.append(backend)
+        raise Stop
+
+    monkeypatch.setattr(local, "fit_local_models", record)
+    F, M = 3, 4198  # M // 2 + 1 = 2100 slow bins
+    rng = np.random.default_rng(3)
+    with pytest.raises(Stop):
+        LRMBeyondNyquist(**params).fit(rng.standard_normal(F * M),
+                                       rng.standard_normal(M), F)
+    assert seen == ["numpy"]
+
+
 def test_qr_fallback_in_bounded_batches(monkeypatch, backend):
     """Every window failing the fast path (no input in band 2): the QR
     fallback runs in batches of ``qr_chunk_size`` and flags all of them."""
@@ -966,4 +999,40 @@ def test_fit_interrupted_between_chunks_gives_the_blas_threads_back(
     monkeypatch.undo()
     est.fit(u, y, 3)  # and the next fit is whole
     assert np.isfinite(est.frf_).all()
+    assert blas_threads() == before
+
+
+def test_calibrated_fits_interrupted_in_the_terms_give_the_blas_threads_back(
+    two_blas_threads, monkeypatch
+):
+    """iter_calibrated_fits (public) computes each chunk's eiv terms in its
+    own body while its closed-form generator, a local, is suspended inside
+    the single-threaded-BLAS section. An exception there (a KeyboardInterrupt,
+    a MemoryError) ended the outer generator but left the inner one suspended
+    for as long as the traceback kept the frame: BLAS stayed on one thread
+    (before the fix: ``[1, 1] == [2, 2]``), the case of the fit fixed in
+    894792c one level down."""
+    from lrmfrf import _blas_threads, uncertainty
+    from lrmfrf.local_models import OneSidedSpectra
+
+    before = two_blas_threads
+    rng = np.random.default_rng(3)
+    u = multisine(600, rng=rng)
+    y = simulate_resonant(u, 3, 0.002, rng)
+    spectra = OneSidedSpectra.from_records(u[None, None], y[None, None], 3)
+    layout = LocalModelLayout(F=3, half_window=12, num_degree=2,
+                              transient_degree=2, den_degree=2)
+
+    def interrupt(*args, **kwargs):
+        raise KeyboardInterrupt("in the eiv terms")
+
+    monkeypatch.setattr(uncertainty, "eiv_terms", interrupt)
+    with pytest.raises(KeyboardInterrupt, match="eiv terms") as info:
+        list(uncertainty.iter_calibrated_fits(spectra, layout, "eiv"))
+    assert info.tb is not None  # the generators' frames stay alive
+    assert blas_threads() == before
+    assert not _blas_threads._open_sections
+    monkeypatch.undo()
+    fits = list(uncertainty.iter_calibrated_fits(spectra, layout, "eiv"))
+    assert np.isfinite(fits[0][1].system_var).any()
     assert blas_threads() == before

@@ -268,6 +268,37 @@ def test_excited_windows_as_the_relative_excitation(gap):
         assert not expected.all()
 
 
+@pytest.mark.parametrize("relative", [1 - 1e-6, 1 + 1e-6, 1 - 1e-12, 1 + 1e-12])
+@pytest.mark.parametrize("scale", [1.0, 2.0**-600, 2.0**600])
+@pytest.mark.parametrize("band", [0, 1])
+def test_excited_windows_at_the_tolerance(relative, scale, band):
+    """A band whose window energies sit at the tolerance (``L m`` a hair
+    above or below ``EXCITATION_TOL * reference``; band 1 with one fainter
+    bin), the other band far above it: the shortcut must not clear the band
+    where the window sums do not (a bound looser than ``L m`` by a factor,
+    e.g. ``L + 1`` or a negative margin, fails here; the gap tests above only
+    have energies far from the tolerance)."""
+    F, n, B = 2, 3, 20
+    layout = LocalModelLayout(F=F, half_window=n, num_degree=1,
+                              transient_degree=1, den_degree=1)
+    L, width = layout.window, B + 2 * n
+    m = 0.37 * scale
+    energy = np.full((layout.n_bands, width), m)
+    energy[1, 9] = 0.5 * m  # one faint bin: its windows sum less than L m
+    U = np.sqrt(energy).reshape(1, -1).astype(complex)
+    reference = np.full(layout.n_bands, L * m)  # relative energy ~1: excited
+    reference[band] = L * m / (EXCITATION_TOL * relative)
+    bins = np.arange(B) + n
+    expected = (_relative_excitation(U, width, bins, layout, reference)
+                > EXCITATION_TOL).all(axis=1)
+    got = _excited_windows(U, width, bins, layout, reference)
+    np.testing.assert_array_equal(got, expected)
+    if relative < 1 - 1e-9:  # below the tolerance everywhere
+        assert not expected.any()
+    elif relative > 1 + 1e-9:  # above it (except the faint bin's windows)
+        assert expected.sum() == (B if band == 0 else B - L)
+
+
 BACKENDS = ["numpy", pytest.param("numba", marks=pytest.mark.skipif(
     not _compiled.AVAILABLE, reason="numba not installed"))]
 

@@ -180,11 +180,16 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         self._reset_refinement()
         refines = self._refines(params)
         std_method = params.get("std_method", "lemma2")
-        backend = resolve_backend("auto", M // 2 + 1, layout.n_params,
-                                  eiv=not keeps_lemma2(std_method, layout))
         # refinement and the std routes of lrmfrf.uncertainty other than
         # Lemma 2 and eiv need the whole per-window fit: not streamed
         whole = refines or std_method not in ("lemma2", "eiv")
+        # the streamed eiv fit computes its terms with the solve (a dearer
+        # numpy window); a whole fit solves the closed form alone here (its
+        # std and refinement choose their own backends)
+        backend = resolve_backend(
+            "auto", M // 2 + 1, layout.n_params,
+            eiv=not whole and not keeps_lemma2(std_method, layout),
+        )
         if whole:
             U = spectra.full_inputs()  # (P, n_u N): the F n_u bands
             self._refined_rows = []  # refinement summaries, one per output row
