@@ -36,7 +36,9 @@ def add_parser(sub) -> None:
         help="find what a plant model misses, given measured data",
         description="Compare a python-control plant model with a measured "
         "beyond-Nyquist FRF, name the missing effects (gain, delay, low_pass, "
-        "missing_mode, mode_shift), add them and report the gap before and after. "
+        "missing_mode, mode_shift; MIMO also per channel: input_gain, "
+        "output_gain, input_low_pass), add them and report the gap before and "
+        "after. "
         "The model is a Python file that defines `plant` (and optionally "
         "`controller`, for closed-loop data P/(1+CP)); the file is executed, so "
         "only pass files you trust. MIMO: name one data column per plant input "

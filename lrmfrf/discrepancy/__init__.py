@@ -12,10 +12,13 @@ from .effects import (
     Effect,
     EffectContext,
     Gain,
+    InputGain,
+    InputLowPass,
     LowPass,
     MissingMode,
     ModelError,
     ModeShift,
+    OutputGain,
     default_effects,
 )
 from .report import DiagnosisReport, Finding
@@ -35,5 +38,8 @@ __all__ = [
     "MissingMode",
     "ModeShift",
     "ModelError",
+    "InputGain",
+    "OutputGain",
+    "InputLowPass",
     "default_effects",
 ]

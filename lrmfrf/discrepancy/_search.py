@@ -207,6 +207,7 @@ def _greedy(problem, nominal, catalogue, accepted, params, steps, calibrator, *,
         if not fits:
             return current, None, cal
         fits.sort(key=lambda item: item[1].bic(problem))
+        _prefer_parent(problem, fits, cost0, ic_margin, effect_alpha)
         label, best = fits[0]
         statistic, p_value = likelihood_ratio_p(problem, cost0, best.cost,
                                                 best.n_params)
@@ -220,6 +221,7 @@ def _greedy(problem, nominal, catalogue, accepted, params, steps, calibrator, *,
         rivals = [
             (lab, fit) for lab, fit in fits[1:]
             if fit.bic(problem) - best.bic(problem) < ic_margin
+            and fit.effects[0].parent != best.effects[0].name
             and likelihood_ratio_p(problem, cost0, fit.cost, fit.n_params)[1]
             < effect_alpha
         ]
@@ -245,7 +247,7 @@ def _greedy(problem, nominal, catalogue, accepted, params, steps, calibrator, *,
         current = best.plant
         if len(accepted) > 1:
             current = _refit_and_swap(problem, nominal, accepted, params, steps,
-                                      context, current, guard)
+                                      context, current, guard, ic_margin=ic_margin)
         cal = calibrator(current)
         _set_calibration(problem, cal)
         w_after = problem.whitened(current)
@@ -254,18 +256,54 @@ def _greedy(problem, nominal, catalogue, accepted, params, steps, calibrator, *,
     return current, None, cal
 
 
+def _prefer_parent(problem, fits, cost0, ic_margin, effect_alpha) -> None:
+    """Put the simpler parent effect first unless its refinement earns its place.
+
+    When the best candidate refines another (``Effect.parent``: a per-channel
+    gain refines the all-channel ``gain``) and that parent is significant and
+    within ``ic_margin`` of it in BIC, the parent is named: a per-channel
+    effect wins only when it is better by the margin. ``fits`` (sorted by
+    BIC) is reordered in place; nothing changes without refining effects.
+    """
+    best = fits[0][1]
+    parent = best.effects[0].parent
+    if parent is None:
+        return
+    for index, (_, fit) in enumerate(fits[1:], 1):
+        if fit.effects[0].name != parent:
+            continue
+        if (fit.bic(problem) - best.bic(problem) < ic_margin
+                and likelihood_ratio_p(problem, cost0, fit.cost,
+                                       fit.n_params)[1] < effect_alpha):
+            fits.insert(0, fits.pop(index))
+        return
+
+
+def _swap_margin(current, alternative, ic_margin: float) -> float:
+    """BIC by which ``alternative`` must beat ``current`` to replace it: the
+    margin to refine a parent (``Effect.parent``), minus the margin to go
+    back to it, else 0."""
+    if alternative.parent is not None and alternative.parent == current.name:
+        return ic_margin
+    if current.parent is not None and current.parent == alternative.name:
+        return -ic_margin
+    return 0.0
+
+
 def _total_bic(problem, cost, effects) -> float:
     n_params = sum(len(e.all_names) for e in effects)
     return cost / problem.inflation + n_params * math.log(problem.n_effective)
 
 
 def _refit_and_swap(problem, nominal, accepted, params, steps, context, current,
-                    guard):
+                    guard, *, ic_margin=0.0):
     """Joint refit, then try each accepted effect's runners-up in its place.
 
     A choice made early (e.g. delay or low-pass, while a missing mode was
     still unmodelled) is replaced when the joint fit with the alternative has
-    a lower BIC. Refits whose closed loop is unstable are not taken.
+    a lower BIC (a per-channel refinement of the accepted effect: lower by
+    ``ic_margin``; its parent in its place: within ``ic_margin``). Refits
+    whose closed loop is unstable are not taken.
     """
     joint = fit_joint(problem, nominal, accepted, params, context)
     if joint.cost < problem.cost(current) and guard.admits(
@@ -286,7 +324,9 @@ def _refit_and_swap(problem, nominal, accepted, params, steps, context, current,
             trial_params[i] = alternative.params[0]
             fit = fit_joint(problem, nominal, trial, trial_params, context)
             bic = _total_bic(problem, fit.cost, trial)
-            if bic < best_bic and guard.admits(fit.plant, _joint_label(trial)):
+            margin = _swap_margin(accepted[i], effect, ic_margin)
+            if bic < best_bic - margin and guard.admits(fit.plant,
+                                                        _joint_label(trial)):
                 accepted[i] = effect
                 params[:] = fit.params
                 current, best_bic = fit.plant, bic
@@ -385,7 +425,9 @@ def _finding(problem, nominal, accepted, params, index, step, joint) -> Finding:
 
 
 def _reported(effect, params) -> dict:
-    return {n: float(params[n]) for n in effect.parameter_names}
+    reported = dict(effect.fixed_parameters())  # e.g. the channel, first
+    reported.update({n: float(params[n]) for n in effect.parameter_names})
+    return reported
 
 
 def _intervals(fit, index, effect) -> dict:

@@ -27,10 +27,35 @@ model_error     zero_frequency, zero_damping, ``P -> H P``, ``H`` a unit-DC-gain
 ``missing_mode`` also fits the modal residue ``r`` (a nuisance parameter,
 reported with the finding's evidence, not in ``parameters``).
 
+Per-channel effects (MIMO only; they expand to nothing on a SISO plant and
+on the side with a single channel, where they would be ``gain`` or
+``low_pass`` again). Each is one candidate per channel (:meth:`Effect.expand`,
+as ``mode_shift`` is one per mode); the channel is chosen, not fitted, and is
+reported as an integer parameter (``input=j`` or ``output=i``, 0-based, the
+``u0, u1, ...`` and ``y0, y1, ...`` of :meth:`DiagnosisReport.plot_grid`):
+
+==============  ===========================  ====================================
+effect          parameters                    model change
+==============  ===========================  ====================================
+input_gain      input (j), gain               column ``j`` of ``P`` times ``gain``
+                                              (one actuator's constant)
+output_gain     output (i), gain              row ``i`` of ``P`` times ``gain``
+                                              (one sensor's scale)
+input_low_pass  input (j), cutoff (Hz)        input ``j`` through
+                                              ``1 / (1 + s / (2 pi cutoff))``
+==============  ===========================  ====================================
+
+A per-channel effect names the all-channel effect it refines
+(:attr:`Effect.parent`: ``gain`` or ``low_pass``); the search prefers the
+parent unless the per-channel candidate is better by the ``ic_margin`` of
+:func:`lrmfrf.diagnose` (a refinement has to earn its channel).
+
 MIMO plants (``n_y`` outputs, ``n_u`` inputs). ``gain``, ``delay``,
 ``low_pass`` and ``model_error`` act on every input channel alike (one
-parameter set: an actuator-chain error common to all channels; a per-channel
-error shows as a weaker fit or an ``ambiguous`` step). ``missing_mode`` adds
+parameter set: an actuator-chain error common to all channels; one channel's
+gain or bandwidth is the per-channel effects' above; one channel's delay has
+no effect of its own, since the model's delay is common to all inputs, and
+shows as a weaker fit or an ``ambiguous`` step). ``missing_mode`` adds
 a mode with the rank-one real residue ``c b^T`` (a mode shape: ``c`` over the
 outputs, ``b`` over the inputs), ``P -> P + c b^T / (s^2 + 2 z w s + w^2)``;
 its nuisance parameters are ``residue_0 .. residue_{n_y-1}`` (``c``) and the
@@ -63,6 +88,9 @@ __all__ = [
     "MissingMode",
     "ModeShift",
     "ModelError",
+    "InputGain",
+    "OutputGain",
+    "InputLowPass",
     "default_effects",
 ]
 
@@ -141,6 +169,10 @@ class Effect:
     repeatable : bool
         Whether the effect may be accepted more than once (several missing
         modes); a second gain or delay is never useful.
+    parent : str or None
+        Name of the simpler effect this one refines (a per-channel gain:
+        ``"gain"``); the search names the parent unless this candidate is
+        better by ``ic_margin``.
     """
 
     name: str = "effect"
@@ -149,6 +181,7 @@ class Effect:
     order: int = 2
     named: bool = True
     repeatable: bool = False
+    parent: str | None = None
 
     @property
     def all_names(self) -> tuple[str, ...]:
@@ -178,6 +211,13 @@ class Effect:
     def label(self) -> str:
         """Name of this candidate instance (e.g. which mode is shifted)."""
         return self.name
+
+    def fixed_parameters(self) -> dict:
+        """Reported parameters chosen by :meth:`expand`, not fitted (a channel).
+
+        They come first in ``Finding.parameters``; empty by default.
+        """
+        return {}
 
     def response(
         self,
@@ -488,9 +528,132 @@ class ModelError(Effect):
         )
 
 
+class _ChannelEffect(Effect):
+    """An effect on one input or output channel of a MIMO plant.
+
+    The catalogue entry (``channel=None``) expands into one candidate per
+    channel; none for a single channel (SISO included), where the all-channel
+    effect is the same model.
+    """
+
+    side: str = "input"  # or "output"
+
+    def __init__(self, *, channel: int | None = None):
+        self.channel = None if channel is None else int(channel)
+
+    def _count(self, plant: ContinuousPlant) -> int:
+        return plant.n_inputs if self.side == "input" else plant.n_outputs
+
+    def expand(self, context):
+        if self.channel is not None:
+            return [self] if self.channel < self._count(context.plant) else []
+        count = self._count(context.plant)
+        if count < 2:
+            return []
+        return [type(self)(channel=j) for j in range(count)]
+
+    @property
+    def channel_name(self) -> str:
+        return f"{'u' if self.side == 'input' else 'y'}{self.channel}"
+
+    def label(self):
+        if self.channel is None:
+            return self.name
+        return f"{self.name}[{self.channel_name}]"
+
+    def fixed_parameters(self):
+        return {} if self.channel is None else {self.side: self.channel}
+
+    def _entries(self, array: np.ndarray) -> np.ndarray:
+        """The entries of a ``(n_y, n_u, K)`` array this channel touches."""
+        return array[:, self.channel] if self.side == "input" else array[self.channel]
+
+    def __repr__(self):
+        return (f"{type(self).__name__}()" if self.channel is None
+                else f"{type(self).__name__}(channel={self.channel})")
+
+
+class InputGain(_ChannelEffect):
+    """One actuator's gain: column ``input`` of ``P`` times ``gain`` (MIMO)."""
+
+    name = "input_gain"
+    parameter_names = ("gain",)
+    parent = "gain"
+    side = "input"
+
+    def initial_guesses(self, context):
+        guesses = [0.7, 0.9, 1.1, 1.4]
+        ratio, weight = context.plant_ratio, context.plant_weight
+        if ratio is not None and np.ndim(ratio) == 3:
+            r, w = self._entries(ratio), self._entries(weight)
+            if w.sum() > 0:
+                estimate = float(np.sum(w * np.abs(r)) / np.sum(w))
+                if np.isfinite(estimate) and 0.1 < estimate < 10:
+                    guesses.insert(0, estimate)
+        return [{"gain": g} for g in guesses]
+
+    def bounds(self, context):
+        return {"gain": (0.05, 20.0)}
+
+    def apply(self, plant, params):
+        scale = np.ones(plant.n_inputs)
+        scale[self.channel] = params["gain"]
+        return plant.with_(B=plant.B * scale, D=plant.D * scale)
+
+    def describe(self, params):
+        return (f"input {self.channel_name} (actuator) gain is "
+                f"{params['gain']:.4g} times the model's")
+
+
+class OutputGain(InputGain):
+    """One sensor's scale: row ``output`` of ``P`` times ``gain`` (MIMO)."""
+
+    name = "output_gain"
+    side = "output"
+
+    def apply(self, plant, params):
+        scale = np.ones((plant.n_outputs, 1))
+        scale[self.channel] = params["gain"]
+        return plant.with_(C=plant.C * scale, D=plant.D * scale)
+
+    def describe(self, params):
+        return (f"output {self.channel_name} (sensor) gain is "
+                f"{params['gain']:.4g} times the model's")
+
+
+class InputLowPass(_ChannelEffect):
+    """One actuator's bandwidth: input ``input`` through a first-order low-pass."""
+
+    name = "input_low_pass"
+    parameter_names = ("cutoff",)
+    parent = "low_pass"
+    side = "input"
+
+    def initial_guesses(self, context):
+        return LowPass().initial_guesses(context)
+
+    def bounds(self, context):
+        return LowPass().bounds(context)
+
+    def apply(self, plant, params):
+        wc = TWO_PI * params["cutoff"]
+        m = plant.n_inputs
+        pick = np.zeros((1, m))
+        pick[0, self.channel] = 1.0
+        return series_input(plant, np.array([[-wc]]), wc * pick, pick.T,
+                            np.eye(m) - pick.T @ pick)
+
+    def describe(self, params):
+        return (f"first-order low-pass on input {self.channel_name} (actuator "
+                f"bandwidth) at {params['cutoff']:.4g} Hz")
+
+
 def default_effects() -> list[Effect]:
-    """The default catalogue: gain, delay, low_pass, missing_mode, mode_shift."""
-    return [Gain(), Delay(), LowPass(), MissingMode(), ModeShift()]
+    """The default catalogue: gain, delay, low_pass, missing_mode, mode_shift,
+    and per channel input_gain, output_gain, input_low_pass (MIMO only: they
+    expand to no candidate on a SISO plant)."""
+    return [Gain(), Delay(), LowPass(), MissingMode(), ModeShift(), InputGain(),
+            OutputGain(), InputLowPass()]
 
 
 # ---------------------------------------------------------------------------

@@ -209,6 +209,13 @@ def fit_candidate(problem: FitProblem, base: ContinuousPlant, accepted: list,
         if best is None or result.cost < best.cost:
             best = result
     x = best.x
+    try:
+        plant = plant_of(x)
+    except (np.linalg.LinAlgError, ValueError):
+        # the effect cannot be applied to this base at all (e.g. a mode shift
+        # aimed at a mode added by an accepted effect, whose nearest pole in
+        # the base is a repeated pair): every start cost the 1e6 penalty
+        return None
     cost = float(np.sum(best.fun**2))
     covariance = _covariance(best.jac, problem.inflation)
     return CandidateFit(
@@ -218,7 +225,7 @@ def fit_candidate(problem: FitProblem, base: ContinuousPlant, accepted: list,
         n_params=len(names),
         covariance=covariance,
         names=[(0, n) for n in names],
-        plant=plant_of(x),
+        plant=plant,
         success=bool(best.success),
     )
 

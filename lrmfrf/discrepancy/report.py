@@ -21,12 +21,14 @@ class Finding:
     ----------
     effect : str
         ``"gain"``, ``"delay"``, ``"low_pass"``, ``"missing_mode"``,
-        ``"mode_shift"`` (catalogue names), ``"model_error"`` (unnamed
+        ``"mode_shift"``, MIMO also ``"input_gain"``, ``"output_gain"``,
+        ``"input_low_pass"`` (catalogue names), ``"model_error"`` (unnamed
         low-order fit) or ``"ambiguous"`` (several effects explain the gap
         about equally well; nothing was added to the model).
     parameters : dict
         The effect's parameters (see :mod:`lrmfrf.discrepancy.effects`); for
-        ``"ambiguous"`` the best candidate's.
+        ``"ambiguous"`` the best candidate's. A per-channel effect's channel
+        comes first, as an int (``{"input": 1, "gain": 1.2}``: input ``u1``).
     band : tuple of float
         ``(low, high)`` in Hz holding 90 % of the improvement in fit.
     statistic : float
@@ -39,7 +41,9 @@ class Finding:
     description : str
         Plain-text description.
     candidates : list of dict
-        The ranked alternatives of the step: ``label``, ``bic``, ``parameters``.
+        The ranked alternatives of the step: ``label``, ``bic``, ``parameters``
+        (by BIC, except that an all-channel effect is put before a
+        per-channel refinement less than ``ic_margin`` better, and named).
     nuisance : dict
         Other fitted values (e.g. the residue of a missing mode).
     """
