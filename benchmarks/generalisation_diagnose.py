@@ -61,15 +61,16 @@ loop unstable is drawn again (as the SISO generator does; 7 closed-loop
 records of those 20 stages: five delays of 0.52-0.95 ms redrawn to 0.1-0.2
 ms, a 406 Hz low-pass and a 283 Hz missing mode).
 ``--mimo-sizing plate`` keeps the plate's own sizes (the records before,
-where no closed-loop missing mode or mode shift reached ``gap_before >= 3``). ``diagnose`` gets the nominal 2x2
-plant and the 2x2 controller (``None`` in open loop).
+where no closed-loop missing mode or mode shift reached ``gap_before >= 3``).
+``diagnose`` gets the nominal 2x2 plant and the 2x2 controller (``None`` in
+open loop).
 
 Usage::
 
     python benchmarks/generalisation_diagnose.py --seeds 1000-1019
     python benchmarks/generalisation_diagnose.py --seeds 2000-2019 --workers 2
     python benchmarks/generalisation_diagnose.py --seeds 1000-1003 --loops open
-    python benchmarks/generalisation_diagnose.py --mimo --seeds 1000-1004
+    python benchmarks/generalisation_diagnose.py --mimo --seeds 1000-1009 --workers 2
 
 Writes ``benchmarks/results/generalisation_diagnose.csv`` (one row per record).
 """
