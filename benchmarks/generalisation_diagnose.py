@@ -47,15 +47,30 @@ orthogonal experiments), N = 1200, 40 dB on each output; open loop shaped to
 the nominal diagonal and in steady state (``--mimo-excitation shaped`` shapes
 the closed-loop records to the nominal closed loop's diagonal too). Gain, delay and low-pass act on both
 inputs alike; a missing mode has a drawn 2x2 rank-one shape
-(:mod:`lrmfrf.discrepancy.hidden_mimo`). ``diagnose`` gets the nominal 2x2
-plant and the 2x2 controller (``None`` in open loop).
+(:mod:`lrmfrf.discrepancy.hidden_mimo`). Sizes as the SISO benchmark's,
+relative to the rigid body at the measured channel (``--mimo-sizing siso``,
+the default): the plate's modes scaled by ``sqrt(7)`` (a corner's rigid
+compliance is ``7 / m``: heave, roll and pitch; the plate's corner values
+squared are drawn in the SISO participation range 0.02-0.4, relative to
+``1 / m``), a missing mode's largest diagonal residue ``participation``
+(0.1-0.4) times the corner's compliance. The stronger modes make the
+diagonal lead-PID unstable at the plate's bandwidth on 5 of the 20 stages of
+seeds 1000-1009 and 2000-2009 (1001, 1002, 1006, 2002, 2006): their bandwidth
+is halved until the loop is stable (as before); a drawn effect that makes the
+loop unstable is drawn again (as the SISO generator does; 7 closed-loop
+records of those 20 stages: five delays of 0.52-0.95 ms redrawn to 0.1-0.2
+ms, a 406 Hz low-pass and a 283 Hz missing mode).
+``--mimo-sizing plate`` keeps the plate's own sizes (the records before,
+where no closed-loop missing mode or mode shift reached ``gap_before >= 3``).
+``diagnose`` gets the nominal 2x2 plant and the 2x2 controller (``None`` in
+open loop).
 
 Usage::
 
     python benchmarks/generalisation_diagnose.py --seeds 1000-1019
     python benchmarks/generalisation_diagnose.py --seeds 2000-2019 --workers 2
     python benchmarks/generalisation_diagnose.py --seeds 1000-1003 --loops open
-    python benchmarks/generalisation_diagnose.py --mimo --seeds 1000-1004
+    python benchmarks/generalisation_diagnose.py --mimo --seeds 1000-1009 --workers 2
 
 Writes ``benchmarks/results/generalisation_diagnose.csv`` (one row per record).
 """
@@ -115,7 +130,8 @@ def run_record(job: tuple) -> dict:
 
         plate, draw = random_stage(seed, mimo=True)
         stage = two_by_two_stage(plate, loop=loop,
-                                 downsampling_factor=draw.downsampling_factor)
+                                 downsampling_factor=draw.downsampling_factor,
+                                 sizing=open_experiment.get("sizing", "siso"))
         experiment = mimo_hidden_effect_experiment(
             None if effect == "none" else effect, stage=stage, rng=record_seed,
             snr_db=snr_db, excitation=open_experiment.get("excitation"))
@@ -166,7 +182,8 @@ def diagnose_table(seeds, *, loops=LOOPS, effects=EFFECTS, snr_db: float = 40.0,
                    workers: int = 1, options: dict | None = None,
                    null_repeats: int = 3, open_flat: bool = False,
                    mimo: bool = False,
-                   mimo_excitation: str | None = None) -> list[dict]:
+                   mimo_excitation: str | None = None,
+                   mimo_sizing: str = "siso") -> list[dict]:
     """Diagnose hidden-effect records on random stages; one row per record.
 
     Parameters
@@ -199,6 +216,11 @@ def diagnose_table(seeds, *, loops=LOOPS, effects=EFFECTS, snr_db: float = 40.0,
     mimo_excitation : {"flat", "shaped"}, optional
         2x2 records' excitation; default flat in closed loop, shaped to the
         nominal diagonal in open loop.
+    mimo_sizing : {"siso", "plate"}, default "siso"
+        Sizes of the 2x2 stages' modes and drawn missing modes
+        (:func:`lrmfrf.discrepancy.hidden_mimo.two_by_two_stage`): relative
+        to the rigid body at a corner as the SISO stages' (``"siso"``), or the
+        plate's own, 7 times smaller (``"plate"``, the records before).
 
     Returns
     -------
@@ -211,7 +233,8 @@ def diagnose_table(seeds, *, loops=LOOPS, effects=EFFECTS, snr_db: float = 40.0,
         raise ValueError(f"`null_repeats` must be in 1..4; got {null_repeats}.")
     if mimo and n_experiments != 1:
         raise ValueError("--mimo simulates ONE experiment per record (issue 15).")
-    experiment = {"mimo": True, "excitation": mimo_excitation} if mimo else (
+    experiment = {"mimo": True, "excitation": mimo_excitation,
+                  "sizing": mimo_sizing} if mimo else (
         {} if open_flat else dict(OPEN_LOOP_EXPERIMENT))
     jobs = [(int(seed), loop, effect, repeat, snr_db, n_experiments,
              calibration_runs, dict(options or {}), experiment)
@@ -320,6 +343,10 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--mimo-excitation", choices=("flat", "shaped"),
                         default=None,
                         help="2x2 excitation (default: flat closed, shaped open)")
+    parser.add_argument("--mimo-sizing", choices=("siso", "plate"), default="siso",
+                        help="2x2 modes and missing modes sized relative to the "
+                             "rigid body as the SISO stages' (default) or the "
+                             "plate's own (7x smaller: the records before)")
     parser.add_argument("--out", default=None,
                         help="CSV (default benchmarks/results/"
                              "generalisation_diagnose[_mimo].csv)")
@@ -334,11 +361,14 @@ def main(argv=None) -> list[dict]:
                           calibration_runs=args.calibration_runs,
                           workers=args.workers, null_repeats=args.null_repeats,
                           open_flat=args.open_flat, mimo=args.mimo,
-                          mimo_excitation=args.mimo_excitation)
+                          mimo_excitation=args.mimo_excitation,
+                          mimo_sizing=args.mimo_sizing)
     print(f"{len(rows)} records on {len(seeds)} {'2x2 ' if args.mimo else ''}"
           f"stages (seeds {args.seeds}) in "
           f"{time.perf_counter() - start:.0f} s; SNR {args.snr:g} dB, "
-          f"P = {args.experiments}, {args.calibration_runs} calibration runs")
+          f"P = {args.experiments}, {args.calibration_runs} calibration runs"
+          + (f"; 2x2 sizing {args.mimo_sizing}, excitation "
+             f"{args.mimo_excitation or 'default'}" if args.mimo else ""))
     print_table(summarise(rows))
     print_misses(rows)
     out = Path(args.out)

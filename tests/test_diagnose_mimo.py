@@ -37,10 +37,11 @@ from lrmfrf.discrepancy.fit import closed_loop_response
 from lrmfrf.discrepancy.hidden import HiddenEffect
 from lrmfrf.discrepancy.hidden_mimo import (
     StageMode,
+    draw_mimo_effect,
     mimo_hidden_effect_experiment,
     two_by_two_stage,
 )
-from lrmfrf.plants import mimo_wafer_stage
+from lrmfrf.plants import mimo_wafer_stage, random_stage
 
 FREQS = np.linspace(1.0, 999.0, 301)
 #: A missing mode above the slow Nyquist frequency (333 Hz at F = 3).
@@ -136,6 +137,57 @@ def test_bin_power_is_the_mean_over_entries():
     w = np.arange(12.0).reshape(2, 2, 3) * (1 + 1j)
     np.testing.assert_allclose(bin_power(w), np.mean(np.abs(w) ** 2, axis=(0, 1)))
     np.testing.assert_array_equal(bin_power(w[0, 0]), np.abs(w[0, 0]) ** 2)
+
+
+# ---------------------------------------------------------------------------
+# Sizes of the benchmark's 2x2 stages and effects
+# ---------------------------------------------------------------------------
+
+
+def test_siso_sizing_sizes_modes_relative_to_the_corner_like_the_siso_stages():
+    # A corner's rigid compliance is 7 / m (heave, roll and pitch); the
+    # plate's corner values squared are drawn in the SISO participation
+    # range (0.02-0.4, relative to 1 / m), so relative to the corner its
+    # modes are 7 times weaker than a SISO stage's unless scaled.
+    plate, _ = random_stage(1000, mimo=True)
+    own = two_by_two_stage(plate, loop="open")
+    sized = two_by_two_stage(plate, loop="open", sizing="siso")
+    compliance = sized.mass * np.diag(sized.rigid)
+    np.testing.assert_allclose(compliance, [7.0, 7.0], rtol=1e-9)
+    assert len(sized.modes) == len(own.modes) > 0
+    for old, new in zip(own.modes, sized.modes, strict=True):
+        assert new.frequency_hz == old.frequency_hz
+        relative = np.square(new.shape) / compliance
+        np.testing.assert_allclose(relative, np.square(old.shape), rtol=1e-9)
+        assert np.all((relative > 0.0195) & (relative < 0.4))
+    # a missing mode: the largest diagonal residue relative to the corner is
+    # the participation, as a SISO missing mode's participation / m
+    effect = draw_mimo_effect("missing_mode", np.random.default_rng(5), sized)
+    residue = np.abs(np.multiply(effect.extra["c"], effect.extra["b"]))
+    assert np.max(residue / compliance) == pytest.approx(
+        effect.extra["participation"], rel=1e-9)
+    same = draw_mimo_effect("missing_mode", np.random.default_rng(5), own)
+    assert same.parameters == effect.parameters  # same draw, other size
+    assert np.max(np.abs(np.multiply(same.extra["c"], same.extra["b"]))
+                  / compliance) < effect.extra["participation"] / 5
+    with pytest.raises(ValueError, match="`sizing`"):
+        two_by_two_stage(plate, loop="open", sizing="large")
+
+
+def test_a_drawn_effect_that_destabilises_the_loop_is_drawn_again():
+    # the SISO generator redraws such effects; this 2x2 stage's first delay
+    # draw (0.525 ms) makes its closed loop unstable
+    plate, draw = random_stage(1003, mimo=True)
+    stage = two_by_two_stage(plate, downsampling_factor=draw.downsampling_factor,
+                             sizing="siso")
+    first = draw_mimo_effect("delay", np.random.default_rng(100302), stage)
+    experiment = mimo_hidden_effect_experiment("delay", stage=stage, rng=100302)
+    assert experiment.effects[0].parameters["delay"] < first.parameters["delay"]
+    poles = np.linalg.eigvals(experiment.true_system.A)
+    assert np.max(np.abs(poles)) < 1.0
+    unstable = HiddenEffect("delay", first.parameters)
+    with pytest.raises(RuntimeError, match="unstable in 3 draws"):
+        mimo_hidden_effect_experiment(unstable, stage=stage, rng=1, max_draws=3)
 
 
 # ---------------------------------------------------------------------------
