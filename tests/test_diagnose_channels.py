@@ -1,10 +1,12 @@
 """Per-channel effects of ``diagnose`` on 2x2 stages: one actuator's gain, one
-sensor's scale, one actuator's bandwidth (``input_gain``, ``output_gain``,
-``input_low_pass``), and the preference for the all-channel effect.
+sensor's scale, one actuator's bandwidth, one actuator's delay
+(``input_gain``, ``output_gain``, ``input_low_pass``, ``input_delay``), and
+the preference for the all-channel effect.
 
 The true plants are built here with python-control (the stage's continuous
 modal model times constant diagonal matrices, or a first-order lag on one
-input, then ZOH), not with the catalogue's own ``apply``. ONE experiment of
+input, then ZOH; a delayed input by lifting its column's ZOH at Ts / 20), not
+with the catalogue's own ``apply``. ONE experiment of
 two uncorrelated multisines at 40 dB, as
 :func:`lrmfrf.discrepancy.hidden_mimo.mimo_hidden_effect_experiment` simulates
 it (copied here: that generator has no per-channel effects). The rates over
@@ -21,7 +23,9 @@ import numpy as np
 import pytest
 
 from lrmfrf.discrepancy import (
+    Delay,
     Gain,
+    InputDelay,
     InputGain,
     InputLowPass,
     OutputGain,
@@ -32,9 +36,10 @@ from lrmfrf.discrepancy._models import (
     ContinuousPlant,
     as_continuous_plant,
     discrete_response,
+    to_discrete_ss,
 )
 from lrmfrf.discrepancy.effects import EffectContext
-from lrmfrf.discrepancy.hidden_mimo import two_by_two_stage
+from lrmfrf.discrepancy.hidden_mimo import _lifted_zoh, two_by_two_stage
 from lrmfrf.plants import mimo_wafer_stage
 from lrmfrf.signals import multisine
 from lrmfrf.simulate import simulate
@@ -67,10 +72,22 @@ def _true_plant(stage, *, inputs=(1.0, 1.0), outputs=(1.0, 1.0), lag=None):
     return _static(outputs) * plant * _static(inputs)
 
 
+def _delayed_input(stage, channel, delay):
+    """The discrete true plant with input ``channel`` delayed by ``delay`` (a
+    multiple of Ts / 20), lifted from the ZOH at the fine step (the hidden-
+    effect generator's construction: matrix powers, not the catalogue's exact
+    expm per delay)."""
+    delays = [delay if j == channel else 0.0 for j in range(2)]
+    return _lifted_zoh(control.ss(stage.plant_continuous()), stage.sample_time,
+                       delays)
+
+
 def _experiment(stage, true_continuous, rng=7, n_samples=1200, snr_db=40.0):
-    """ONE closed-loop experiment of the true plant (flat multisines)."""
+    """ONE closed-loop experiment of the true plant (flat multisines); a
+    discrete ``true_continuous`` is used as it is."""
     rng = np.random.default_rng(rng)
-    true = control.sample_system(true_continuous, stage.sample_time, "zoh")
+    true = (true_continuous if control.isdtime(true_continuous, strict=True)
+            else control.sample_system(true_continuous, stage.sample_time, "zoh"))
     system = control.feedback(true, stage.controller, sign=-1)
     assert np.max(np.abs(np.linalg.eigvals(system.A))) < 1.0
     u = np.stack([multisine(n_samples, rms=1.44, rng=rng) for _ in range(2)])
@@ -116,17 +133,60 @@ def test_per_channel_effects_are_the_python_control_models(stage):
             rtol=1e-8, atol=1e-9 * np.abs(ref).max(), err_msg=effect.label())
 
 
+def test_input_delay_is_the_lifted_python_control_model(stage):
+    plant = as_continuous_plant(stage.plant_continuous(), stage.sample_time,
+                                shape=(2, 2))
+    T = stage.sample_time
+    for channel, delay in ((1, 0.35 * T), (0, 2.6 * T), (1, 1.0 * T)):
+        changed = InputDelay(channel=channel).apply(plant, {"delay": delay})
+        assert changed.delay == tuple(delay if j == channel else 0.0
+                                      for j in range(2))
+        ref = _delayed_input(stage, channel, delay)(_z(T))
+        scale = np.abs(ref).max()
+        np.testing.assert_allclose(discrete_response(changed, FREQS, T), ref,
+                                   rtol=1e-8, atol=1e-9 * scale)
+        # the state-space form (the simulations of the calibration) agrees
+        as_ss = to_discrete_ss(changed, T)(_z(T))
+        np.testing.assert_allclose(as_ss, ref, rtol=1e-8, atol=1e-9 * scale)
+        # the delay on every input adds to each input's own
+        both = Delay().apply(changed, {"delay": 0.5 * T})
+        assert both.delay == pytest.approx(tuple(d + 0.5 * T for d in changed.delay))
+
+
+def test_per_input_delays_are_each_column_with_its_own():
+    # a random 2x2 plant with feedthrough: column j with the tuple of delays is
+    # the single-input plant with the (scalar, long-tested) delay delays[j]
+    rng = np.random.default_rng(0)
+    T = 0.5e-3
+    A = rng.standard_normal((4, 4))
+    A -= (np.max(np.linalg.eigvals(A).real) + 50.0) * np.eye(4)
+    B, C, D = (rng.standard_normal(shape) for shape in ((4, 2), (2, 4), (2, 2)))
+    for delays in ((0.3 * T, 2.7 * T), (0.0, T), (3 * T, 0.0), (1.5 * T, 1.5 * T)):
+        plant = ContinuousPlant(A, B, C, D, delays)
+        got = discrete_response(plant, FREQS, T)
+        for j in range(2):
+            single = ContinuousPlant(A, B[:, [j]], C, D[:, [j]], delays[j])
+            np.testing.assert_allclose(got[:, j],
+                                       discrete_response(single, FREQS, T)[:, 0],
+                                       rtol=1e-12, atol=1e-13)
+        np.testing.assert_allclose(to_discrete_ss(plant, T)(_z(T)), got,
+                                   rtol=1e-10, atol=1e-12)
+    assert np.array_equal(ContinuousPlant(A, B, C, D, 0.2 * T).input_delays,
+                          [0.2 * T, 0.2 * T])
+
+
 def test_one_candidate_per_channel_and_none_for_siso(stage):
     plant = as_continuous_plant(stage.plant_continuous(), stage.sample_time,
                                 shape=(2, 2))
     labels = [e.label() for entry in default_effects()
               for e in entry.expand(_context(plant))]
     for label in ("input_gain[u0]", "input_gain[u1]", "output_gain[y0]",
-                  "output_gain[y1]", "input_low_pass[u0]", "input_low_pass[u1]"):
+                  "output_gain[y1]", "input_low_pass[u0]", "input_low_pass[u1]",
+                  "input_delay[u0]", "input_delay[u1]"):
         assert label in labels
     siso = plant.with_(B=plant.B[:, :1], C=plant.C[:1], D=plant.D[:1, :1])
     one_output = plant.with_(C=plant.C[:1], D=plant.D[:1])  # 1 x 2
-    for effect in (InputGain(), OutputGain(), InputLowPass()):
+    for effect in (InputGain(), OutputGain(), InputLowPass(), InputDelay()):
         assert effect.expand(_context(siso)) == []
     assert OutputGain().expand(_context(one_output)) == []
     assert len(InputGain().expand(_context(one_output))) == 2
@@ -170,6 +230,18 @@ def test_one_input_bandwidth_is_named_on_its_channel(stage):
     assert report.effects == ["input_low_pass"], report.findings
     assert report.findings[0].parameters["input"] == 0
     assert report.findings[0].parameters["cutoff"] == pytest.approx(300.0, rel=0.05)
+
+
+def test_one_input_delay_is_named_on_its_channel(stage):
+    delay = 1.2 * stage.sample_time
+    records = _experiment(stage, _delayed_input(stage, 1, delay))
+    report = _diagnose(stage, records)
+    assert report.effects == ["input_delay"], report.findings
+    finding = report.findings[0]
+    assert finding.parameters["input"] == 1
+    assert finding.parameters["delay"] == pytest.approx(delay, rel=0.05)
+    assert "on input u1 (actuator)" in finding.description
+    assert report.gap_after < 1.3 < report.gap_before
 
 
 def test_gain_on_all_inputs_is_still_gain(stage):

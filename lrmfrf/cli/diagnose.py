@@ -37,7 +37,7 @@ def add_parser(sub) -> None:
         description="Compare a python-control plant model with a measured "
         "beyond-Nyquist FRF, name the missing effects (gain, delay, low_pass, "
         "missing_mode, mode_shift; MIMO also per channel: input_gain, "
-        "output_gain, input_low_pass), add them and report the gap before and "
+        "output_gain, input_low_pass, input_delay), add them and report the gap before and "
         "after. "
         "The model is a Python file that defines `plant` (and optionally "
         "`controller`, for closed-loop data P/(1+CP)); the file is executed, so "

@@ -12,6 +12,7 @@ from .effects import (
     Effect,
     EffectContext,
     Gain,
+    InputDelay,
     InputGain,
     InputLowPass,
     LowPass,
@@ -40,6 +41,7 @@ __all__ = [
     "ModelError",
     "InputGain",
     "OutputGain",
+    "InputDelay",
     "InputLowPass",
     "default_effects",
 ]

@@ -3,9 +3,9 @@
 The discrepancy workflow names effects in continuous time (a delay in seconds,
 a cutoff and a mode in Hz) and compares models with a measured FRF on the fast
 DFT grid. A model is a :class:`ContinuousPlant` (state space plus an input
-delay, the same on every input channel; SISO or MIMO); it is turned into the
-discrete model the data see by an exact zero-order-hold discretisation,
-fractional delays included. Responses of a SISO model have shape ``(K,)``, of
+delay, one for all input channels or one per input; SISO or MIMO); it is
+turned into the discrete model the data see by an exact zero-order-hold
+discretisation, fractional delays included. Responses of a SISO model have shape ``(K,)``, of
 a MIMO one ``(n_y, n_u, K)`` (python-control's layout).
 """
 
@@ -41,8 +41,10 @@ class ContinuousPlant:
     ----------
     A, B, C, D : ndarray
         Shapes (n, n), (n, n_u), (n_y, n), (n_y, n_u); time in seconds.
-    delay : float
-        Input delay in seconds, >= 0, the same on every input channel.
+    delay : float or tuple of float
+        Input delay in seconds, >= 0: one value for every input channel, or a
+        tuple of ``n_u`` values, input ``j`` delayed by ``delay[j]`` (one
+        actuator's delay, :class:`lrmfrf.discrepancy.effects.InputDelay`).
     """
 
     A: np.ndarray
@@ -63,6 +65,13 @@ class ContinuousPlant:
     @property
     def n_outputs(self) -> int:
         return self.C.shape[0]
+
+    @property
+    def input_delays(self) -> np.ndarray:
+        """The delay of each input channel in seconds, shape ``(n_u,)``."""
+        delays = np.broadcast_to(np.asarray(self.delay, dtype=float),
+                                 (self.n_inputs,))
+        return np.maximum(delays, 0.0)
 
     @property
     def is_siso(self) -> bool:
@@ -213,36 +222,63 @@ def _inverse_zoh(Phi, Gamma, C, D, sample_time) -> ContinuousPlant:
     return ContinuousPlant(A, B, C, D)
 
 
-def _zoh_delay_matrices(plant: ContinuousPlant, sample_time: float):
-    """Exact ZOH matrices with input delay ``d T + eps``, ``0 <= eps < T``.
-
-    ``x[k+1] = Phi x[k] + Gamma0 u[k-d] + Gamma1 u[k-d-1]``.
-    """
-    n = plant.n_states
-    delay = max(float(plant.delay), 0.0)
+def _split_delay(delay: float, sample_time: float) -> tuple[int, float]:
+    """``delay = whole T + frac``, ``0 <= frac < T`` (a frac within 1e-12 T of
+    zero is zero)."""
+    delay = max(float(delay), 0.0)
     whole = int(math.floor(delay / sample_time + 1e-12))
     frac = delay - whole * sample_time
     if frac < 1e-12 * sample_time:
         frac = 0.0
+    return whole, frac
 
+
+def _zoh_delay_matrices(plant: ContinuousPlant, sample_time: float):
+    """Exact ZOH matrices with input delay ``d T + eps``, ``0 <= eps < T``.
+
+    ``x[k+1] = Phi x[k] + Gamma0 u[k-d] + Gamma1 u[k-d-1]``. With one delay
+    per input (``plant.delay`` a tuple) ``whole`` and ``has_frac`` are arrays
+    of shape ``(n_u,)`` and column ``j`` of ``Gamma0``/``Gamma1`` is input
+    ``j``'s with its own ``d_j`` and ``eps_j``.
+    """
+    n = plant.n_states
     m = plant.n_inputs
 
-    def integral(h):  # (exp(A h), int_0^h exp(A s) ds B)
-        aug = np.zeros((n + m, n + m))
+    def integral(h, B):  # (exp(A h), int_0^h exp(A s) ds B)
+        k = B.shape[1]
+        aug = np.zeros((n + k, n + k))
         aug[:n, :n] = plant.A * h
-        aug[:n, n:] = plant.B * h
+        aug[:n, n:] = B * h
         e = scipy.linalg.expm(aug)
         return e[:n, :n], e[:n, n:]
 
-    Phi_rest, Gamma0 = integral(sample_time - frac)
-    if frac > 0:
-        Phi_frac, Psi = integral(frac)
-        Gamma1 = Phi_rest @ Psi
-        Phi = Phi_rest @ Phi_frac
-    else:
-        Gamma1 = np.zeros_like(Gamma0)
-        Phi = Phi_rest
-    return Phi, Gamma0, Gamma1, whole, frac > 0
+    if np.ndim(plant.delay) == 0:  # one delay for all inputs
+        whole, frac = _split_delay(plant.delay, sample_time)
+        Phi_rest, Gamma0 = integral(sample_time - frac, plant.B)
+        if frac > 0:
+            Phi_frac, Psi = integral(frac, plant.B)
+            Gamma1 = Phi_rest @ Psi
+            Phi = Phi_rest @ Phi_frac
+        else:
+            Gamma1 = np.zeros_like(Gamma0)
+            Phi = Phi_rest
+        return Phi, Gamma0, Gamma1, whole, frac > 0
+    # one delay per input: each column with its own fraction of a sample
+    Phi, _ = integral(sample_time, plant.B[:, :0])
+    Gamma0 = np.zeros((n, m))
+    Gamma1 = np.zeros((n, m))
+    whole = np.zeros(m, dtype=int)
+    has_frac = np.zeros(m, dtype=bool)
+    for j, delay in enumerate(plant.input_delays):
+        whole[j], frac = _split_delay(delay, sample_time)
+        column = plant.B[:, j:j + 1]
+        Phi_rest, gamma0 = integral(sample_time - frac, column)
+        Gamma0[:, j:j + 1] = gamma0
+        if frac > 0:
+            _, psi = integral(frac, column)
+            Gamma1[:, j:j + 1] = Phi_rest @ psi
+            has_frac[j] = True
+    return Phi, Gamma0, Gamma1, whole, has_frac
 
 
 def discrete_response(
@@ -267,7 +303,12 @@ def discrete_response(
     n = plant.n_states
     zinv = 1.0 / z
     rows = plant.C  # (n_y, n): every output row at once
-    feed = plant.D[..., None] * (zinv if has_frac else 1.0)
+    if np.ndim(whole):  # one delay per input: factors of shape (n_u, K)
+        feed = plant.D[..., None] * np.where(has_frac[:, None], zinv, 1.0)
+        shift = zinv ** whole[:, None]
+    else:
+        feed = plant.D[..., None] * (zinv if has_frac else 1.0)
+        shift = zinv**whole
     if n:
         m = plant.n_inputs
         parts = _resolvent_apply(Phi, [*Gamma0.T, *Gamma1.T], z, rows)
@@ -276,7 +317,7 @@ def discrete_response(
         response = np.stack(responses, axis=-2) + feed  # (n_y, n_u, K)
     else:
         response = np.broadcast_to(feed, plant.D.shape + z.shape).astype(complex)
-    response = response * zinv**whole
+    response = response * shift
     return response[0, 0] if plant.is_siso else response
 
 
@@ -332,9 +373,14 @@ def to_discrete_ss(plant: ContinuousPlant, sample_time: float) -> control.StateS
     """Exact ZOH discretisation as a python-control model (delays as states).
 
     The delay ``d T + eps`` becomes ``d`` (plus one when ``eps > 0``) extra
-    shift-register states on each input.
+    shift-register states on each input. With one delay per input every input
+    gets the longest register; input ``j`` enters the plant from its own
+    ``d_j`` (the register states past it are unobservable).
     """
     Phi, Gamma0, Gamma1, whole, has_frac = _zoh_delay_matrices(plant, sample_time)
+    if np.ndim(whole):
+        return _to_discrete_ss_per_input(plant, sample_time, Phi, Gamma0, Gamma1,
+                                         whole, has_frac)
     n, m = plant.n_states, plant.n_inputs
     n_shift = whole + (1 if has_frac else 0)
     if n_shift == 0:
@@ -368,6 +414,43 @@ def to_discrete_ss(plant: ContinuousPlant, sample_time: float) -> control.StateS
         D[:] = plant.D
     else:
         C[:, slot(lag_d)] += plant.D
+    return control.ss(A, B, C, D, sample_time)
+
+
+def _to_discrete_ss_per_input(plant, sample_time, Phi, Gamma0, Gamma1, whole,
+                              has_frac) -> control.StateSpace:
+    """:func:`to_discrete_ss` with one delay per input (``whole``, ``has_frac``
+    of shape ``(n_u,)``)."""
+    n, m = plant.n_states, plant.n_inputs
+    lags = whole + has_frac.astype(int)  # input j's lag of its feedthrough
+    n_shift = int(lags.max())
+    size = n + n_shift * m
+    A = np.zeros((size, size))
+    B = np.zeros((size, m))
+    A[:n, :n] = Phi
+    if n_shift:
+        B[n:n + m] = np.eye(m)
+    for i in range(1, n_shift):
+        A[n + i * m:n + (i + 1) * m, n + (i - 1) * m:n + i * m] = np.eye(m)
+    C = np.zeros((plant.n_outputs, size))
+    C[:, :n] = plant.C
+    D = np.zeros((plant.n_outputs, m))
+
+    def state(lag, j):  # the state holding u_j[k - lag], lag >= 1
+        return n + (lag - 1) * m + j
+
+    for j in range(m):
+        for gain, lag in ((Gamma0[:, j], whole[j]), (Gamma1[:, j], whole[j] + 1)):
+            if lag == whole[j] + 1 and not has_frac[j]:
+                continue
+            if lag == 0:
+                B[:n, j] += gain
+            else:
+                A[:n, state(lag, j)] += gain
+        if lags[j] == 0:
+            D[:, j] = plant.D[:, j]
+        else:
+            C[:, state(lags[j], j)] += plant.D[:, j]
     return control.ss(A, B, C, D, sample_time)
 
 

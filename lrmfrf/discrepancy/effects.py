@@ -90,6 +90,7 @@ __all__ = [
     "ModelError",
     "InputGain",
     "OutputGain",
+    "InputDelay",
     "InputLowPass",
     "default_effects",
 ]
@@ -279,7 +280,10 @@ class Delay(Effect):
         return {"delay": (0.0, 20.0 * context.sample_time)}
 
     def apply(self, plant, params):
-        return plant.with_(delay=plant.delay + max(params["delay"], 0.0))
+        extra = max(params["delay"], 0.0)
+        if np.ndim(plant.delay) == 0:
+            return plant.with_(delay=plant.delay + extra)
+        return plant.with_(delay=tuple(float(d) + extra for d in plant.input_delays))
 
     def describe(self, params):
         return f"missing input delay of {params['delay'] * 1e3:.4g} ms"
@@ -648,12 +652,37 @@ class InputLowPass(_ChannelEffect):
                 f"bandwidth) at {params['cutoff']:.4g} Hz")
 
 
+class InputDelay(_ChannelEffect):
+    """One actuator's delay: input ``input`` delayed by ``delay`` seconds
+    (fractional samples allowed), the other inputs as they are (MIMO)."""
+
+    name = "input_delay"
+    parameter_names = ("delay",)
+    parent = "delay"
+    side = "input"
+
+    def initial_guesses(self, context):
+        return Delay().initial_guesses(context)
+
+    def bounds(self, context):
+        return Delay().bounds(context)
+
+    def apply(self, plant, params):
+        delays = np.array(plant.input_delays)
+        delays[self.channel] += max(params["delay"], 0.0)
+        return plant.with_(delay=tuple(float(d) for d in delays))
+
+    def describe(self, params):
+        return (f"missing delay of {params['delay'] * 1e3:.4g} ms on input "
+                f"{self.channel_name} (actuator)")
+
+
 def default_effects() -> list[Effect]:
     """The default catalogue: gain, delay, low_pass, missing_mode, mode_shift,
-    and per channel input_gain, output_gain, input_low_pass (MIMO only: they
-    expand to no candidate on a SISO plant)."""
+    and per channel input_gain, output_gain, input_low_pass, input_delay
+    (MIMO only: they expand to no candidate on a SISO plant)."""
     return [Gain(), Delay(), LowPass(), MissingMode(), ModeShift(), InputGain(),
-            OutputGain(), InputLowPass()]
+            OutputGain(), InputLowPass(), InputDelay()]
 
 
 # ---------------------------------------------------------------------------

@@ -361,9 +361,12 @@ def _true_plant(stage: TwoByTwoStage, effects) -> control.StateSpace:
     return _lifted_zoh(control.ss(continuous), stage.sample_time, delay)
 
 
-def _lifted_zoh(system, sample_time: float, delay: float) -> control.StateSpace:
+def _lifted_zoh(system, sample_time: float, delay) -> control.StateSpace:
     """ZOH with an input delay (multiple of Ts/_LIFT) on every input; see
-    :func:`.hidden._lifted_zoh` (here with ``m`` inputs)."""
+    :func:`.hidden._lifted_zoh` (here with ``m`` inputs). ``delay`` a
+    sequence: one per input (:func:`_lifted_zoh_per_input`)."""
+    if np.ndim(delay):
+        return _lifted_zoh_per_input(system, sample_time, delay)
     fine = control.sample_system(system, sample_time / _LIFT, method="zoh")
     A, B = np.asarray(fine.A), np.asarray(fine.B)
     C = np.asarray(fine.C)
@@ -392,6 +395,46 @@ def _lifted_zoh(system, sample_time: float, delay: float) -> control.StateSpace:
             Bd[:n] += gain
         else:
             Ad[:n, n + (lag - 1) * m:n + lag * m] += gain
+    Cd = np.zeros((C.shape[0], size))
+    Cd[:, :n] = C
+    return control.ss(Ad, Bd, Cd, np.zeros((C.shape[0], m)), sample_time)
+
+
+def _lifted_zoh_per_input(system, sample_time: float, delays) -> control.StateSpace:
+    """:func:`_lifted_zoh` with input ``j`` delayed by ``delays[j]`` (each a
+    multiple of Ts/_LIFT): every input has the longest shift register and
+    enters the plant from its own lag; strictly proper ``system`` only."""
+    fine = control.sample_system(system, sample_time / _LIFT, method="zoh")
+    A, B = np.asarray(fine.A), np.asarray(fine.B)
+    C = np.asarray(fine.C)
+    if np.any(np.asarray(fine.D)):
+        raise ValueError("_lifted_zoh_per_input needs a strictly proper system.")
+    n, m = B.shape
+    steps = np.rint(np.asarray(delays, dtype=float) / (sample_time / _LIFT))
+    whole, frac = np.divmod(steps.astype(int), _LIFT)
+    powers = [np.eye(n)]
+    for _ in range(_LIFT):
+        powers.append(A @ powers[-1])
+    lags = int(np.max(whole + (frac > 0)))
+    size = n + lags * m
+    Ad = np.zeros((size, size))
+    Bd = np.zeros((size, m))
+    Ad[:n, :n] = powers[_LIFT]
+    if lags:  # states n + (l - 1) m + j hold u_j[k - l]
+        Bd[n:n + m] = np.eye(m)
+        for i in range(1, lags):
+            Ad[n + i * m:n + (i + 1) * m, n + (i - 1) * m:n + i * m] = np.eye(m)
+    for j in range(m):
+        held = ((whole[j], range(frac[j], _LIFT)), (whole[j] + 1, range(frac[j])))
+        for lag, fine_steps in held:
+            gain = sum((powers[_LIFT - 1 - i] @ B[:, j] for i in fine_steps),
+                       np.zeros(n))
+            if not np.any(gain):
+                continue
+            if lag == 0:
+                Bd[:n, j] += gain
+            else:
+                Ad[:n, n + (lag - 1) * m + j] += gain
     Cd = np.zeros((C.shape[0], size))
     Cd[:, :n] = C
     return control.ss(Ad, Bd, Cd, np.zeros((C.shape[0], m)), sample_time)

@@ -22,7 +22,7 @@ class Finding:
     effect : str
         ``"gain"``, ``"delay"``, ``"low_pass"``, ``"missing_mode"``,
         ``"mode_shift"``, MIMO also ``"input_gain"``, ``"output_gain"``,
-        ``"input_low_pass"`` (catalogue names), ``"model_error"`` (unnamed
+        ``"input_low_pass"``, ``"input_delay"`` (catalogue names), ``"model_error"`` (unnamed
         low-order fit) or ``"ambiguous"`` (several effects explain the gap
         about equally well; nothing was added to the model).
     parameters : dict

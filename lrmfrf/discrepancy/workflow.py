@@ -108,8 +108,9 @@ def diagnose(
         BIC margin by which the best candidate must beat every other; else the
         step is reported as ``"ambiguous"`` and nothing is added. A
         per-channel effect of a MIMO plant (``input_gain``, ``output_gain``,
-        ``input_low_pass``) must beat its all-channel version (``gain``,
-        ``low_pass``) by it; within it the all-channel one is named.
+        ``input_low_pass``, ``input_delay``) must beat its all-channel version
+        (``gain``, ``low_pass``, ``delay``) by it; within it the all-channel
+        one is named.
     max_effects : int, default=3
         Most effects accepted in the greedy search; ``0`` only tests (the
         report then has no findings, whatever the p-values say).
