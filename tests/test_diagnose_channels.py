@@ -207,3 +207,58 @@ def test_null_record_names_nothing(stage):
     report = _diagnose(stage, records)
     assert report.findings == []
     assert 0.7 < report.gap_before < 1.3
+
+
+# ---------------------------------------------------------------------------
+# The swap step's margins (known answers on a noise-free open-loop problem)
+# ---------------------------------------------------------------------------
+
+
+def _swap_problem(stage):
+    """Open-loop problem of input u1's gain 1.02 (noise-free, std 2 % of |G|):
+    the nominal plant, the problem, its context and the fitted candidates
+    ``gain`` and ``input_gain[u1]`` with their BIC."""
+    from lrmfrf.discrepancy._search import _total_bic
+    from lrmfrf.discrepancy.fit import FitProblem, fit_candidate
+
+    sample_time = stage.sample_time
+    nominal = as_continuous_plant(stage.plant_continuous(), sample_time, shape=(2, 2))
+    truth = _true_plant(stage, inputs=(1.0, 1.02))
+    measured = control.sample_system(truth, sample_time)(_z(sample_time))
+    shape = measured.shape
+    problem = FitProblem(FREQS, measured, 0.02 * np.abs(measured), sample_time, None,
+                         np.zeros(shape, complex), np.ones(shape), 1.0)
+    P = discrete_response(nominal, FREQS, sample_time)
+    context = EffectContext(nominal, FREQS, sample_time, measured / P,
+                            np.ones(shape), np.zeros(FREQS.size))
+    fits = {e.name: fit_candidate(problem, nominal, [], [], e, context)
+            for e in (Gain(), InputGain(channel=1))}
+    bic = {name: _total_bic(problem, fit.cost, fit.effects)
+           for name, fit in fits.items()}
+    return nominal, problem, context, fits, bic
+
+
+@pytest.mark.parametrize("start, other", [("gain", "input_gain"),
+                                          ("input_gain", "gain")])
+def test_swap_step_needs_the_margin_to_refine_and_keeps_it_to_go_back(
+        stage, start, other):
+    """_refit_and_swap: the per-channel refinement replaces its accepted parent
+    only when better by ``ic_margin`` (``gain`` kept at a margin twice the BIC
+    difference, swapped at half of it), and the parent replaces an accepted
+    refinement when within ``ic_margin`` (swapped back at twice the
+    difference, kept at half). A swap step blind to the margin (plain BIC)
+    fails both halves."""
+    from lrmfrf.discrepancy._search import LoopGuard, _refit_and_swap
+
+    nominal, problem, context, fits, bic = _swap_problem(stage)
+    difference = bic["gain"] - bic["input_gain"]
+    assert difference > 50  # the refinement fits far better
+    for margin, expected in ((2 * difference, "gain"), (difference / 2,
+                                                        "input_gain")):
+        accepted = [fits[start].effects[0]]
+        params = [dict(fits[start].params[0])]
+        steps = [{"fits": [(other, fits[other])]}]
+        _refit_and_swap(problem, nominal, accepted, params, steps, context,
+                        nominal, LoopGuard(None, problem.sample_time),
+                        ic_margin=margin)
+        assert accepted[0].name == expected, (start, margin)
