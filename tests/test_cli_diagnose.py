@@ -421,3 +421,40 @@ def test_diagnose_steady_state_flag(plain_data, capsys, monkeypatch):
                                 "--no-plot", "--out", plain_data / out], capsys)
         assert status == 0, err
     assert [c["steady_state"] for c in calls] == [True, False]
+
+
+def test_per_channel_findings_name_the_data_column(mimo_files, capsys, monkeypatch):
+    """The library calls input j ``u{j}`` (0-based); the data's columns are
+    often 1-based (``u1,u2``), so "input u1 (actuator)" alone pointed at the
+    wrong column (the figure's ``u1`` panel is input 0). diagnosis.txt and
+    diagnosis.json now add the column after the description (stubbed
+    diagnose: a finding on input 1)."""
+    import dataclasses
+
+    from lrmfrf.discrepancy.report import Finding
+
+    finding = Finding(effect="input_gain", parameters={"input": 1, "gain": 1.2},
+                      band=(10.0, 900.0), statistic=50.0, p_value=1e-9,
+                      description="input u1 (actuator) gain is 1.2 times the "
+                      "model's")
+    sensor = dataclasses.replace(finding, effect="output_gain",
+                                 parameters={"output": 0, "gain": 0.9},
+                                 description="output y0 (sensor) gain is 0.9 "
+                                 "times the model's")
+    report = dataclasses.replace(_synthetic_report((2, 2)),
+                                 findings=[finding, sensor])
+    _stub(monkeypatch, "sample_time=None, rng=None", [], report=report)
+    out = mimo_files / "columns"
+    status, _, err = _main(["diagnose", mimo_files / "mimo.py", mimo_files / "d.npz",
+                            "--F", "3", *MIMO_COLUMNS, "--open-loop", "--no-plot",
+                            "--out", out], capsys)
+    assert status == 0, err
+    text = (out / "diagnosis.txt").read_text()
+    assert ("1. input_gain: input u1 (actuator) gain is 1.2 times the model's "
+            "(input 1 is data column 'u2')") in text
+    assert ("2. output_gain: output y0 (sensor) gain is 0.9 times the model's "
+            "(output 0 is data column 'y1')") in text
+    saved = json.loads((out / "diagnosis.json").read_text())["findings"]
+    assert saved[0]["description"].endswith("(input 1 is data column 'u2')")
+    assert saved[0]["parameters"] == {"input": 1, "gain": 1.2}
+    assert report.findings[0] is finding  # the report itself is not changed
