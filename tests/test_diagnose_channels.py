@@ -262,3 +262,19 @@ def test_swap_step_needs_the_margin_to_refine_and_keeps_it_to_go_back(
                         nominal, LoopGuard(None, problem.sample_time),
                         ic_margin=margin)
         assert accepted[0].name == expected, (start, margin)
+
+
+def test_an_explicit_channel_must_exist(stage):
+    """A channel out of range was silently no candidate (``channel=2`` of two
+    inputs) or, negative, counted from the end and reported as ``input=-1``
+    (``input_gain[u-1]``): both are refused with the valid range."""
+    plant = as_continuous_plant(stage.plant_continuous(), stage.sample_time,
+                                shape=(2, 2))
+    for effect in (InputGain(channel=2), InputGain(channel=-1),
+                   OutputGain(channel=2), InputLowPass(channel=-2)):
+        with pytest.raises(ValueError, match="0-based index from 0 to 1"):
+            effect.expand(_context(plant))
+    siso = plant.with_(B=plant.B[:, :1], C=plant.C[:1], D=plant.D[:1, :1])
+    with pytest.raises(ValueError, match=r"the plant has 1 input, .* 0 to 0"):
+        InputGain(channel=1).expand(_context(siso))
+    assert InputGain(channel=0).expand(_context(siso))[0].channel == 0
