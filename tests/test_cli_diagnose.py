@@ -458,3 +458,30 @@ def test_per_channel_findings_name_the_data_column(mimo_files, capsys, monkeypat
     assert saved[0]["description"].endswith("(input 1 is data column 'u2')")
     assert saved[0]["parameters"] == {"input": 1, "gain": 1.2}
     assert report.findings[0] is finding  # the report itself is not changed
+
+
+@pytest.mark.parametrize("suffix, accepted", [("[:, 0]", True), ("[0, :]", False)])
+def test_diagnose_controller_of_a_non_square_plant(mimo_files, capsys, monkeypatch,
+                                                   suffix, accepted):
+    """A plant of 1 output and 2 inputs needs a controller of 2 outputs and 1
+    input (u = r - C y): the square 2x2 cases above cannot tell the check from
+    its transpose, which accepted the 1 x 2 controller and refused the 2 x 1."""
+    model = mimo_files / f"one_by_two_{'ok' if accepted else 'bad'}.py"
+    model.write_text(MIMO_MODEL.format(suffix=suffix).replace(
+        "plant = stage.plant", "plant = stage.plant[0, :]"))
+    calls = []
+    _stub(monkeypatch, "sample_time=None, rng=None", calls)
+    out = mimo_files / f"nonsquare_{accepted}"
+    status, _, err = _main(["diagnose", model, mimo_files / "d.npz", "--F", "3",
+                            "--output-column", "y1", "--input-column", "u1,u2",
+                            "--no-plot", "--out", out], capsys)
+    if accepted:
+        assert status == 0, err
+        assert np.shape(calls[0]["u_h"]) == (2, 600)
+        assert np.shape(calls[0]["y_l"])[-1] == 200
+        assert calls[0]["controller"].ninputs == 1
+    else:
+        assert status == 1 and not calls
+        assert ("`controller` has 1 output and 2 inputs, but with a plant of 1 "
+                "output and 2 inputs it must have 2 outputs (the plant's inputs) "
+                "and 1 input (the plant's outputs)") in err
