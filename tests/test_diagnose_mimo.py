@@ -427,8 +427,9 @@ def test_shift_mode_numerator_with_a_velocity_term(stage):
                           np.zeros((2, 2)))
 
     rest = control.ss(stage.plant_continuous())
-    plant = as_continuous_plant(control.parallel(rest, mode(w0, z0, position, velocity)),
-                                stage.sample_time, shape=(2, 2))
+    moving = mode(w0, z0, position, velocity)
+    plant = as_continuous_plant(control.parallel(rest, moving), stage.sample_time,
+                                shape=(2, 2))
     shifted = shift_mode(plant, 400.0, z0, 450.0, z1)
     p = complex(-z0 * w0, w0 * np.sqrt(1 - z0**2))
     q = complex(-z1 * w1, w1 * np.sqrt(1 - z1**2))
