@@ -278,3 +278,51 @@ def test_an_explicit_channel_must_exist(stage):
     with pytest.raises(ValueError, match=r"the plant has 1 input, .* 0 to 0"):
         InputGain(channel=1).expand(_context(siso))
     assert InputGain(channel=0).expand(_context(siso))[0].channel == 0
+
+
+def _ranked(costs: dict):
+    """``(problem, fits)``: one-parameter candidates of the given costs on a
+    problem of 2x2 entries and 100 bins, inflation 1, sorted by BIC."""
+    from lrmfrf.discrepancy import LowPass, MissingMode
+    from lrmfrf.discrepancy.fit import CandidateFit, FitProblem
+
+    shape = (2, 2, 100)
+    problem = FitProblem(np.arange(1.0, 101.0), np.zeros(shape, complex),
+                         np.ones(shape), 1e-3, None, np.zeros(shape, complex),
+                         np.ones(shape), 1.0)
+    make = {"gain": Gain, "input_gain[u1]": lambda: InputGain(channel=1),
+            "output_gain[y0]": lambda: OutputGain(channel=0),
+            "low_pass": LowPass, "missing_mode": MissingMode}
+    fits = [(label, CandidateFit([make[label]()], [{}], cost, 1, np.eye(1), [],
+                                 None)) for label, cost in costs.items()]
+    fits.sort(key=lambda item: item[1].bic(problem))
+    return problem, fits
+
+
+@pytest.mark.parametrize("cost0, costs, first", [
+    # the parent significant and within the margin (6): named
+    (200.0, {"input_gain[u1]": 100.0, "gain": 105.0, "missing_mode": 190.0},
+     "gain"),
+    # the parent beyond the margin: the refinement stays first
+    (200.0, {"input_gain[u1]": 100.0, "gain": 107.0, "missing_mode": 190.0},
+     "input_gain[u1]"),
+    # within the margin but not significant (chi2(1) at 0.01 is 6.63; the
+    # drop from cost0 = 110 is 5): the refinement stays first
+    (110.0, {"input_gain[u1]": 100.0, "gain": 105.0, "low_pass": 108.0},
+     "input_gain[u1]"),
+    # no parent: nothing moves, whatever the per-channel ones behind it
+    (200.0, {"missing_mode": 100.0, "gain": 101.0, "output_gain[y0]": 102.0},
+     "missing_mode"),
+])
+def test_prefer_parent_known_answers(cost0, costs, first):
+    """_prefer_parent on made-up costs: the all-channel parent goes first only
+    when significant and within ic_margin of its best refinement. Without
+    the significance condition every test passed before; without the margin
+    condition only a seeded run failed."""
+    from lrmfrf.discrepancy._search import _prefer_parent
+
+    problem, fits = _ranked(costs)
+    order = [label for label, _ in fits]
+    _prefer_parent(problem, fits, cost0, 6.0, 0.01)
+    assert fits[0][0] == first
+    assert sorted(label for label, _ in fits) == sorted(order)  # only reordered
