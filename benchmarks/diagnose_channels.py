@@ -34,6 +34,7 @@ Usage::
 
     python benchmarks/diagnose_channels.py --seeds 1000-1007
     python benchmarks/diagnose_channels.py --seeds 1000-1003 --catalogue old
+    python benchmarks/diagnose_channels.py --seeds 1000-1003 --sizing siso
 
 Writes ``benchmarks/results/diagnose_channels_<catalogue>_seeds<a>-<b>.csv``
 (one row per record) and the summary table as ``.txt`` beside it.
@@ -127,7 +128,7 @@ def simulate_record(stage, continuous, rng, *, n_samples=1200, rms=1.44,
 
 
 def run_record(seed: int, loop: str, case: str, catalogue: str,
-               calibration_runs: int) -> dict:
+               calibration_runs: int, sizing: str = "plate") -> dict:
     from lrmfrf.discrepancy import (
         Delay,
         Gain,
@@ -147,7 +148,8 @@ def run_record(seed: int, loop: str, case: str, catalogue: str,
     rng = np.random.default_rng(record_seed)
     plate, draw = random_stage(seed, mimo=True)
     stage = two_by_two_stage(plate, loop=loop,
-                             downsampling_factor=draw.downsampling_factor)
+                             downsampling_factor=draw.downsampling_factor,
+                             sizing=sizing)
     channel, key, value = -1, "", math.nan
     if case in ("gain", "none"):
         experiment = mimo_hidden_effect_experiment(
@@ -272,6 +274,11 @@ def main(argv=None):
     parser.add_argument("--cases", nargs="*", default=list(CASES), choices=CASES)
     parser.add_argument("--catalogue", choices=("new", "old"), default="new")
     parser.add_argument("--calibration-runs", type=int, default=10)
+    parser.add_argument("--sizing", choices=("plate", "siso"), default="plate",
+                        help="2x2 stages' mode sizes (two_by_two_stage): the "
+                        "plate's own (default, the records so far) or relative "
+                        "to the corner as the SISO stages' (generalisation_"
+                        "diagnose.py --mimo's default)")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
     try:
@@ -281,15 +288,16 @@ def main(argv=None):
     except ImportError:  # pragma: no cover
         pass
     seeds = parse_seeds(args.seeds)
+    sized = "" if args.sizing == "plate" else f"_{args.sizing}_sized"
     out = Path(args.out or (f"benchmarks/results/diagnose_channels_{args.catalogue}"
-                            f"_seeds{seeds[0]}-{seeds[-1]}.csv"))
+                            f"{sized}_seeds{seeds[0]}-{seeds[-1]}.csv"))
     out.parent.mkdir(parents=True, exist_ok=True)
     rows = []
     for seed in seeds:
         for loop in args.loops:
             for case in args.cases:
                 row = run_record(seed, loop, case, args.catalogue,
-                                 args.calibration_runs)
+                                 args.calibration_runs, args.sizing)
                 rows.append(row)
                 print(f"{seed} {loop:<6} {case:<14} ch={row['channel']:>2} "
                       f"{row['key']}={row['value']:.4g} -> {row['found'] or '-'} "
@@ -300,7 +308,8 @@ def main(argv=None):
         writer.writeheader()
         writer.writerows(rows)
     text = (f"{len(rows)} records, catalogue {args.catalogue}, seeds {args.seeds}, "
-            f"calibration_runs {args.calibration_runs}, 40 dB, one experiment\n"
+            f"calibration_runs {args.calibration_runs}, 40 dB, one experiment, "
+            f"sizing {args.sizing}\n"
             + format_table(summarise(rows)))
     out.with_suffix(".txt").write_text(text + "\n")
     print(text)

@@ -421,3 +421,67 @@ def test_diagnose_steady_state_flag(plain_data, capsys, monkeypatch):
                                 "--no-plot", "--out", plain_data / out], capsys)
         assert status == 0, err
     assert [c["steady_state"] for c in calls] == [True, False]
+
+
+def test_per_channel_findings_name_the_data_column(mimo_files, capsys, monkeypatch):
+    """The library calls input j ``u{j}`` (0-based); the data's columns are
+    often 1-based (``u1,u2``), so "input u1 (actuator)" alone pointed at the
+    wrong column (the figure's ``u1`` panel is input 0). diagnosis.txt and
+    diagnosis.json now add the column after the description (stubbed
+    diagnose: a finding on input 1)."""
+    import dataclasses
+
+    from lrmfrf.discrepancy.report import Finding
+
+    finding = Finding(effect="input_gain", parameters={"input": 1, "gain": 1.2},
+                      band=(10.0, 900.0), statistic=50.0, p_value=1e-9,
+                      description="input u1 (actuator) gain is 1.2 times the "
+                      "model's")
+    sensor = dataclasses.replace(finding, effect="output_gain",
+                                 parameters={"output": 0, "gain": 0.9},
+                                 description="output y0 (sensor) gain is 0.9 "
+                                 "times the model's")
+    report = dataclasses.replace(_synthetic_report((2, 2)),
+                                 findings=[finding, sensor])
+    _stub(monkeypatch, "sample_time=None, rng=None", [], report=report)
+    out = mimo_files / "columns"
+    status, _, err = _main(["diagnose", mimo_files / "mimo.py", mimo_files / "d.npz",
+                            "--F", "3", *MIMO_COLUMNS, "--open-loop", "--no-plot",
+                            "--out", out], capsys)
+    assert status == 0, err
+    text = (out / "diagnosis.txt").read_text()
+    assert ("1. input_gain: input u1 (actuator) gain is 1.2 times the model's "
+            "(input 1 is data column 'u2')") in text
+    assert ("2. output_gain: output y0 (sensor) gain is 0.9 times the model's "
+            "(output 0 is data column 'y1')") in text
+    saved = json.loads((out / "diagnosis.json").read_text())["findings"]
+    assert saved[0]["description"].endswith("(input 1 is data column 'u2')")
+    assert saved[0]["parameters"] == {"input": 1, "gain": 1.2}
+    assert report.findings[0] is finding  # the report itself is not changed
+
+
+@pytest.mark.parametrize("suffix, accepted", [("[:, 0]", True), ("[0, :]", False)])
+def test_diagnose_controller_of_a_non_square_plant(mimo_files, capsys, monkeypatch,
+                                                   suffix, accepted):
+    """A plant of 1 output and 2 inputs needs a controller of 2 outputs and 1
+    input (u = r - C y): the square 2x2 cases above cannot tell the check from
+    its transpose, which accepted the 1 x 2 controller and refused the 2 x 1."""
+    model = mimo_files / f"one_by_two_{'ok' if accepted else 'bad'}.py"
+    model.write_text(MIMO_MODEL.format(suffix=suffix).replace(
+        "plant = stage.plant", "plant = stage.plant[0, :]"))
+    calls = []
+    _stub(monkeypatch, "sample_time=None, rng=None", calls)
+    out = mimo_files / f"nonsquare_{accepted}"
+    status, _, err = _main(["diagnose", model, mimo_files / "d.npz", "--F", "3",
+                            "--output-column", "y1", "--input-column", "u1,u2",
+                            "--no-plot", "--out", out], capsys)
+    if accepted:
+        assert status == 0, err
+        assert np.shape(calls[0]["u_h"]) == (2, 600)
+        assert np.shape(calls[0]["y_l"])[-1] == 200
+        assert calls[0]["controller"].ninputs == 1
+    else:
+        assert status == 1 and not calls
+        assert ("`controller` has 1 output and 2 inputs, but with a plant of 1 "
+                "output and 2 inputs it must have 2 outputs (the plant's inputs) "
+                "and 1 input (the plant's outputs)") in err

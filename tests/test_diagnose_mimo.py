@@ -427,8 +427,9 @@ def test_shift_mode_numerator_with_a_velocity_term(stage):
                           np.zeros((2, 2)))
 
     rest = control.ss(stage.plant_continuous())
-    plant = as_continuous_plant(control.parallel(rest, mode(w0, z0, position, velocity)),
-                                stage.sample_time, shape=(2, 2))
+    moving = mode(w0, z0, position, velocity)
+    plant = as_continuous_plant(control.parallel(rest, moving), stage.sample_time,
+                                shape=(2, 2))
     shifted = shift_mode(plant, 400.0, z0, 450.0, z1)
     p = complex(-z0 * w0, w0 * np.sqrt(1 - z0**2))
     q = complex(-z1 * w1, w1 * np.sqrt(1 - z1**2))
@@ -439,3 +440,32 @@ def test_shift_mode_numerator_with_a_velocity_term(stage):
     ref = control.sample_system(truth, stage.sample_time)(_z(FREQS, stage.sample_time))
     np.testing.assert_allclose(discrete_response(shifted, FREQS, stage.sample_time),
                                ref, atol=1e-8 * np.abs(ref).max())
+
+
+def test_a_candidate_that_cannot_be_applied_is_dropped_not_raised(stage):
+    """fit_candidate on a base where the effect cannot be applied at all (a
+    mode shift aimed at the open-loop stage's suspension, a repeated pole
+    pair: every start costs the penalty) returns None, so the search drops
+    it. It built the plant at the optimum outside the residual's guard and
+    raised "could not isolate the mode ... (repeated pole)" out of diagnose
+    (7a11b03, which had no test)."""
+    from lrmfrf.discrepancy._models import Resonance
+    from lrmfrf.discrepancy.fit import FitProblem, fit_candidate
+
+    open_stage = two_by_two_stage(mimo_wafer_stage(downsampling_factor=3),
+                                  loop="open")
+    T = open_stage.sample_time
+    nominal = as_continuous_plant(open_stage.plant_continuous(), T, shape=(2, 2))
+    suspension = [r for r in resonances(nominal) if abs(r.frequency - 5.0) < 0.01]
+    assert len(suspension) == 2  # the same pole pair twice (x and y corners)
+    measured = discrete_response(nominal, FREQS, T)
+    shape = measured.shape
+    problem = FitProblem(FREQS, measured, 0.01 * np.abs(measured), T, None,
+                         np.zeros(shape, complex), np.ones(shape), 1.0)
+    context = EffectContext(nominal, FREQS, T, np.ones(shape), np.ones(shape),
+                            np.zeros(FREQS.size), resonances=resonances(nominal))
+    target = Resonance(5.0, 0.1, -1)
+    with pytest.raises(ValueError, match="repeated pole"):
+        ModeShift(target=target).apply(nominal, {"frequency": 5.2, "damping": 0.1})
+    assert fit_candidate(problem, nominal, [], [], ModeShift(target=target),
+                         context) is None

@@ -6,6 +6,7 @@ together with :func:`lrmfrf.io.atomic_group` (all or nothing).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -118,6 +119,8 @@ def run(args, parser) -> int:
                           controller=controller, **keywords)
     except (ValueError, TypeError) as exc:
         raise CLIError(f"{args.data}: {one_line(exc)}") from exc
+    if _is_mimo(data):
+        report = _with_column_names(report, data)
     summary, content = report.summary(), report.to_dict()
     if _is_mimo(data):
         summary, content = _with_channels(summary, content, data)
@@ -207,6 +210,34 @@ def _with_channels(summary: str, content: dict, data) -> tuple[str, dict]:
                "output_columns": list(data.output_names),
                "input_columns": list(data.input_names)}
     return "\n".join(lines), content
+
+
+def _with_column_names(report, data):
+    """The report with each per-channel finding naming its data column.
+
+    The library names input ``j`` ``u{j}`` and output ``i`` ``y{i}``
+    (0-based), which a file's columns need not match: with columns ``u1,u2``
+    the library's ``u1`` is column ``u2``. Findings whose parameters hold an
+    ``input`` or ``output`` index get ``(input 1 is data column 'u2')`` after
+    their description (text and JSON).
+    """
+    findings = list(getattr(report, "findings", []))
+    named = [_finding_with_column_names(finding, data) for finding in findings]
+    if all(new is old for new, old in zip(named, findings, strict=True)):
+        return report
+    return dataclasses.replace(report, findings=named)
+
+
+def _finding_with_column_names(finding, data):
+    notes = []
+    for side, names in (("output", data.output_names), ("input", data.input_names)):
+        index = finding.parameters.get(side)
+        if isinstance(index, int) and 0 <= index < len(names):
+            notes.append(f"{side} {index} is data column {names[index]!r}")
+    if not notes:
+        return finding
+    return dataclasses.replace(
+        finding, description=f"{finding.description} ({'; '.join(notes)})")
 
 
 def _diagnose_keywords(args, data, plant, controller) -> dict:

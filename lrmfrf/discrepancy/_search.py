@@ -279,13 +279,22 @@ def _prefer_parent(problem, fits, cost0, ic_margin, effect_alpha) -> None:
         return
 
 
-def _swap_margin(current, alternative, ic_margin: float) -> float:
+def _swap_margin(current, alternative, ic_margin: float, others=()) -> float:
     """BIC by which ``alternative`` must beat ``current`` to replace it: the
     margin to refine a parent (``Effect.parent``), minus the margin to go
-    back to it, else 0."""
+    back to it, else 0.
+
+    Going back is not preferred while another accepted effect (``others``)
+    refines the same parent: the parent with that sibling is no simpler than
+    the two refinements (on two inputs the same model: ``gain`` 1.2 with
+    input u0 0.75 is input u0 0.9 with input u1 1.2, their BIC ties), so it
+    must win by the margin.
+    """
     if alternative.parent is not None and alternative.parent == current.name:
         return ic_margin
     if current.parent is not None and current.parent == alternative.name:
+        if any(other.parent == current.parent for other in others):
+            return ic_margin
         return -ic_margin
     return 0.0
 
@@ -302,8 +311,9 @@ def _refit_and_swap(problem, nominal, accepted, params, steps, context, current,
     A choice made early (e.g. delay or low-pass, while a missing mode was
     still unmodelled) is replaced when the joint fit with the alternative has
     a lower BIC (a per-channel refinement of the accepted effect: lower by
-    ``ic_margin``; its parent in its place: within ``ic_margin``). Refits
-    whose closed loop is unstable are not taken.
+    ``ic_margin``; its parent in its place: within ``ic_margin``, unless
+    another refinement of that parent is accepted, see :func:`_swap_margin`).
+    Refits whose closed loop is unstable are not taken.
     """
     joint = fit_joint(problem, nominal, accepted, params, context)
     if joint.cost < problem.cost(current) and guard.admits(
@@ -324,7 +334,8 @@ def _refit_and_swap(problem, nominal, accepted, params, steps, context, current,
             trial_params[i] = alternative.params[0]
             fit = fit_joint(problem, nominal, trial, trial_params, context)
             bic = _total_bic(problem, fit.cost, trial)
-            margin = _swap_margin(accepted[i], effect, ic_margin)
+            margin = _swap_margin(accepted[i], effect, ic_margin,
+                                  [e for j, e in enumerate(accepted) if j != i])
             if bic < best_bic - margin and guard.admits(fit.plant,
                                                         _joint_label(trial)):
                 accepted[i] = effect

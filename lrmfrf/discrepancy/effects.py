@@ -549,9 +549,16 @@ class _ChannelEffect(Effect):
         return plant.n_inputs if self.side == "input" else plant.n_outputs
 
     def expand(self, context):
-        if self.channel is not None:
-            return [self] if self.channel < self._count(context.plant) else []
         count = self._count(context.plant)
+        if self.channel is not None:
+            if not 0 <= self.channel < count:
+                noun = self.side + ("" if count == 1 else "s")
+                raise ValueError(
+                    f"{self!r}: the plant has {count} {noun}, and `channel` is "
+                    f"a 0-based index from 0 to {count - 1}. Pass an existing "
+                    f"channel, or {type(self).__name__}() for one candidate "
+                    "per channel.")
+            return [self]
         if count < 2:
             return []
         return [type(self)(channel=j) for j in range(count)]

@@ -147,8 +147,8 @@ def two_by_two_stage(stage, *, loop: str = "closed",
         Closed: a diagonal lead-PID at the stage's bandwidth (halved until
         the loop is stable; with ``sizing="siso"`` up to 7 times, as its
         stronger modes need it more often: 5 of the 20 stages of seeds
-        1000-1009 and 2000-2009, against none with the plate's sizes). Open:
-        suspended, no controller.
+        1000-1009 and 2000-2009, once or twice, against one, seed 1002 once,
+        with the plate's sizes). Open: suspended, no controller.
     downsampling_factor : int, optional
         Default: the stage's.
     sizing : {"plate", "siso"}, default "plate"
