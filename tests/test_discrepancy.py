@@ -839,3 +839,34 @@ def test_mode_shift_candidates_of_a_non_minimal_siso_model_can_be_applied():
                             resonances=found)
     for effect in ModeShift().expand(context):
         effect.apply(plant, {"frequency": 320.0, "damping": 0.02})
+
+
+def test_mode_shift_candidates_target_only_modes_a_shift_can_move(monkeypatch):
+    # Mode shifts are applied before missing modes: a shift "of" a mode that
+    # an accepted missing mode added would move the nominal mode nearest it
+    # under the added mode's label. With a missing mode accepted first (seed
+    # 13: missing mode at 841 Hz and gain hidden) every mode_shift candidate
+    # the search expands must target a mode of the nominal plant (no mode
+    # shift is accepted here).
+    from lrmfrf.discrepancy.effects import ModeShift
+
+    expanded = []
+    original = ModeShift.expand
+
+    def recording(self, context):
+        candidates = original(self, context)
+        expanded.extend(f"{c.target.frequency:.4g}" for c in candidates)
+        return candidates
+
+    monkeypatch.setattr(ModeShift, "expand", recording)
+    experiment = hidden_effect_experiment(("missing_mode", "gain"), rng=13)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        report = diagnose(experiment.plant, experiment.u_h, experiment.y_l,
+                          experiment.F, controller=experiment.controller, rng=13,
+                          calibration_runs=4)
+    assert sorted(report.effects) == ["gain", "missing_mode"]
+    nominal = {f"{mode.frequency:.4g}" for mode in resonances(
+        as_continuous_plant(experiment.plant, experiment.sample_time))}
+    assert expanded
+    assert set(expanded) <= nominal, set(expanded) - nominal

@@ -27,7 +27,7 @@ from .detect import (
     global_test,
     uncalibrated,
 )
-from .effects import EffectContext, ModelError
+from .effects import EffectContext, MissingMode, ModelError
 from .fit import FitProblem, apply_all, fit_candidate, fit_joint, likelihood_ratio_p
 from .report import DiagnosisReport, Finding
 
@@ -191,7 +191,14 @@ def _greedy(problem, nominal, catalogue, accepted, params, steps, calibrator, *,
     current = nominal
     for _ in range(max_effects):
         cost0 = problem.cost(current)
-        context = _context(problem, current, cal)
+        # mode shifts act before the modes accepted missing modes add: their
+        # targets are the modes of the nominal plant with the shifts only
+        modal = None
+        if any(isinstance(e, MissingMode) for e in accepted):
+            modal = apply_all(nominal, [e for e in accepted if e.order == 0],
+                              [p for e, p in zip(accepted, params, strict=True)
+                               if e.order == 0])
+        context = _context(problem, current, cal, modal_plant=modal)
         taken = {effect.label() for effect in accepted}
         fits = []
         for entry in catalogue:
@@ -462,7 +469,8 @@ def _band(frequencies, w_before, w_after) -> tuple:
     return (float(low), float(high))
 
 
-def _context(problem: FitProblem, plant: ContinuousPlant, cal) -> EffectContext:
+def _context(problem: FitProblem, plant: ContinuousPlant, cal, *,
+             modal_plant: ContinuousPlant | None = None) -> EffectContext:
     plant_frf = problem.plant_response(plant)
     model = problem.measured_response(plant_frf)
     residual = problem.measured - model - problem.bias
@@ -495,6 +503,8 @@ def _context(problem: FitProblem, plant: ContinuousPlant, cal) -> EffectContext:
         plant_weight=weight,
         discrepancy=discrepancy_spectrum(w2, cal.smoothing_bins),
         resonances=resonances(plant),
+        modal_resonances=(None if modal_plant is None or modal_plant is plant
+                          else resonances(modal_plant)),
         sensitivity=sensitivity,
         residual=residual,
         std=std,

@@ -118,6 +118,11 @@ class EffectContext:
         Smoothed whitened squared residual (the discrepancy spectrum).
     resonances : list of Resonance
         Lightly damped modes of ``plant``.
+    modal_resonances : list of Resonance or None
+        Lightly damped modes of the plant the modal effects (``order`` 0,
+        mode shifts) act on: the nominal plant with the accepted mode shifts,
+        without the modes accepted missing modes added (those are applied
+        after the shifts, so a shift cannot move them). None: ``resonances``.
     sensitivity : ndarray of shape (K,), complex, or pair of ndarrays
         ``dG/dP`` of the measured system at the model (1 without controller).
         MIMO: the pair ``(S_o, S_i)`` of shapes (n_y, n_y, K) and
@@ -138,6 +143,7 @@ class EffectContext:
     plant_weight: np.ndarray
     discrepancy: np.ndarray
     resonances: list = field(default_factory=list)
+    modal_resonances: list | None = None
     sensitivity: np.ndarray | None = None
     residual: np.ndarray | None = None
     std: np.ndarray | None = None
@@ -429,11 +435,12 @@ class ModeShift(Effect):
     def expand(self, context):
         if self.target is not None:
             return [self]
+        modes = (context.resonances if context.modal_resonances is None
+                 else context.modal_resonances)
         return [
             ModeShift(target=mode, max_shift=self.max_shift)
-            for mode in context.resonances
-            if mode.frequency < context.nyquist
-            and not _repeated(mode, context.resonances)
+            for mode in modes
+            if mode.frequency < context.nyquist and not _repeated(mode, modes)
         ]
 
     def label(self):
