@@ -39,6 +39,23 @@ with flat inputs no missing mode or mode shift showed (``gap_before`` about
 1). ``"siso"``: the same rules as the SISO stages relative to the corner's
 rigid compliance (modes scaled by ``sqrt(m K_jj)``; a missing mode's largest
 diagonal residue ``participation * K_jj``).
+
+Asymmetric stages (``asymmetry`` of :func:`two_by_two_stage`). The stage
+above is symmetric: collocated (each mode's output shape is its input
+shape), ``K = [[7, 1], [1, 7]] / m``, unit actuator and sensor gains and the
+same lead-PID on both corners, so ``P = P^T`` and ``C = c I``: a transposed
+matrix or swapped sensitivities give the same answer there. ``asymmetry=seed``
+draws from the seed actuator and sensor gains (0.7-1.4 per corner,
+``P = diag(g_y) P_phys diag(g_u)``), a centre of gravity off the plate centre
+(``K_11 != K_22``), sensors a small distance from their actuators (``K`` not
+symmetric; each mode's sensor values 0.75-1.25 times its actuator values:
+non-collocated) and a lead-PID per corner on its own effective mass
+``1 / (g_y,j K_jj g_u,j)`` with its own bandwidth, the loop checked stable
+with >= 30 deg phase margin and gain margin >= 2 per loop (the other loop
+closed), as :func:`lrmfrf.plants.random_stage` requires. Effects act on the
+physical plant between the gains: a gain, delay or low-pass on both inputs,
+a missing mode ``c b^T / m`` (physical shapes, seen through the gains), a
+mode shift keeping both shapes.
 """
 
 from __future__ import annotations
@@ -337,7 +354,8 @@ def _asymmetric_stage(stage, loop: str, downsampling_factor, sizing: str,
         modes.append(StageMode(float(mode.frequency_hz), float(mode.damping),
                                tuple(float(v) for v in shape),
                                tuple(float(v) for v in shape * ratio)))
-    F = stage.downsampling_factor if downsampling_factor is None else downsampling_factor
+    F = (stage.downsampling_factor if downsampling_factor is None
+         else downsampling_factor)
     info = {k: drawn[k] for k in ("cog", "bandwidth_ratio")}
     info["sensor_offset"] = tuple(
         float(v) for v in np.linalg.norm(drawn["sensor_xy"] - drawn["actuator_xy"],
