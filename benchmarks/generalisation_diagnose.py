@@ -64,6 +64,16 @@ ms, a 406 Hz low-pass and a 283 Hz missing mode).
 where no closed-loop missing mode or mode shift reached ``gap_before >= 3``).
 ``diagnose`` gets the nominal 2x2 plant and the 2x2 controller (``None`` in
 open loop).
+``--mimo-asymmetric``: the 2x2 stage drawn asymmetric from its seed
+(``two_by_two_stage(..., asymmetry=seed)``, the same plant in both loops):
+actuator and sensor gains 0.7-1.4 per corner, the centre of gravity up to 30 %
+of the half-width off centre (``K_11 != K_22``), each sensor 5-15 % of the
+half-width from its actuator (``K`` not symmetric, each mode's sensor values
+0.75-1.25 times its actuator values), and a lead-PID per corner on its own
+effective mass with its own bandwidth (0.6-1 times the stage's; both halved
+until the loop is stable with >= 30 deg phase margin and gain margin >= 2 per
+loop, the other closed). The model given to ``diagnose`` is that asymmetric
+stage; only the hidden effect differs.
 
 Usage::
 
@@ -71,6 +81,8 @@ Usage::
     python benchmarks/generalisation_diagnose.py --seeds 2000-2019 --workers 2
     python benchmarks/generalisation_diagnose.py --seeds 1000-1003 --loops open
     python benchmarks/generalisation_diagnose.py --mimo --seeds 1000-1009 --workers 2
+    python benchmarks/generalisation_diagnose.py --mimo --mimo-asymmetric \
+        --seeds 1000-1009 --workers 2
 
 Writes ``benchmarks/results/generalisation_diagnose.csv`` (one row per record).
 """
@@ -131,7 +143,9 @@ def run_record(job: tuple) -> dict:
         plate, draw = random_stage(seed, mimo=True)
         stage = two_by_two_stage(plate, loop=loop,
                                  downsampling_factor=draw.downsampling_factor,
-                                 sizing=open_experiment.get("sizing", "siso"))
+                                 sizing=open_experiment.get("sizing", "siso"),
+                                 asymmetry=(seed if open_experiment.get("asymmetric")
+                                            else None))
         experiment = mimo_hidden_effect_experiment(
             None if effect == "none" else effect, stage=stage, rng=record_seed,
             snr_db=snr_db, excitation=open_experiment.get("excitation"))
@@ -183,7 +197,8 @@ def diagnose_table(seeds, *, loops=LOOPS, effects=EFFECTS, snr_db: float = 40.0,
                    null_repeats: int = 3, open_flat: bool = False,
                    mimo: bool = False,
                    mimo_excitation: str | None = None,
-                   mimo_sizing: str = "siso") -> list[dict]:
+                   mimo_sizing: str = "siso",
+                   mimo_asymmetric: bool = False) -> list[dict]:
     """Diagnose hidden-effect records on random stages; one row per record.
 
     Parameters
@@ -221,6 +236,10 @@ def diagnose_table(seeds, *, loops=LOOPS, effects=EFFECTS, snr_db: float = 40.0,
         (:func:`lrmfrf.discrepancy.hidden_mimo.two_by_two_stage`): relative
         to the rigid body at a corner as the SISO stages' (``"siso"``), or the
         plate's own, 7 times smaller (``"plate"``, the records before).
+    mimo_asymmetric : bool, default False
+        Asymmetric 2x2 stages, drawn from the stage's seed
+        (``two_by_two_stage(..., asymmetry=seed)``: actuator and sensor gains,
+        centre of gravity offset, non-collocated sensors, a PID per loop).
 
     Returns
     -------
@@ -233,8 +252,10 @@ def diagnose_table(seeds, *, loops=LOOPS, effects=EFFECTS, snr_db: float = 40.0,
         raise ValueError(f"`null_repeats` must be in 1..4; got {null_repeats}.")
     if mimo and n_experiments != 1:
         raise ValueError("--mimo simulates ONE experiment per record (issue 15).")
+    if mimo_asymmetric and not mimo:
+        raise ValueError("--mimo-asymmetric needs --mimo.")
     experiment = {"mimo": True, "excitation": mimo_excitation,
-                  "sizing": mimo_sizing} if mimo else (
+                  "sizing": mimo_sizing, "asymmetric": mimo_asymmetric} if mimo else (
         {} if open_flat else dict(OPEN_LOOP_EXPERIMENT))
     jobs = [(int(seed), loop, effect, repeat, snr_db, n_experiments,
              calibration_runs, dict(options or {}), experiment)
@@ -347,13 +368,18 @@ def main(argv=None) -> list[dict]:
                         help="2x2 modes and missing modes sized relative to the "
                              "rigid body as the SISO stages' (default) or the "
                              "plate's own (7x smaller: the records before)")
+    parser.add_argument("--mimo-asymmetric", action="store_true",
+                        help="2x2 stages made asymmetric from the seed (actuator "
+                             "and sensor gains, CoG offset, non-collocated "
+                             "sensors, a PID per loop)")
     parser.add_argument("--out", default=None,
                         help="CSV (default benchmarks/results/"
                              "generalisation_diagnose[_mimo].csv)")
     args = parser.parse_args(argv)
     if args.out is None:
         args.out = ("benchmarks/results/generalisation_diagnose"
-                    + ("_mimo" if args.mimo else "") + ".csv")
+                    + ("_mimo" if args.mimo else "")
+                    + ("_asymmetric" if args.mimo_asymmetric else "") + ".csv")
     seeds = parse_seeds(args.seeds)
     start = time.perf_counter()
     rows = diagnose_table(seeds, loops=args.loops, effects=args.effects,
@@ -362,13 +388,15 @@ def main(argv=None) -> list[dict]:
                           workers=args.workers, null_repeats=args.null_repeats,
                           open_flat=args.open_flat, mimo=args.mimo,
                           mimo_excitation=args.mimo_excitation,
-                          mimo_sizing=args.mimo_sizing)
+                          mimo_sizing=args.mimo_sizing,
+                          mimo_asymmetric=args.mimo_asymmetric)
     print(f"{len(rows)} records on {len(seeds)} {'2x2 ' if args.mimo else ''}"
           f"stages (seeds {args.seeds}) in "
           f"{time.perf_counter() - start:.0f} s; SNR {args.snr:g} dB, "
           f"P = {args.experiments}, {args.calibration_runs} calibration runs"
           + (f"; 2x2 sizing {args.mimo_sizing}, excitation "
-             f"{args.mimo_excitation or 'default'}" if args.mimo else ""))
+             f"{args.mimo_excitation or 'default'}"
+             + (", asymmetric" if args.mimo_asymmetric else "") if args.mimo else ""))
     print_table(summarise(rows))
     print_misses(rows)
     out = Path(args.out)

@@ -39,10 +39,28 @@ with flat inputs no missing mode or mode shift showed (``gap_before`` about
 1). ``"siso"``: the same rules as the SISO stages relative to the corner's
 rigid compliance (modes scaled by ``sqrt(m K_jj)``; a missing mode's largest
 diagonal residue ``participation * K_jj``).
+
+Asymmetric stages (``asymmetry`` of :func:`two_by_two_stage`). The stage
+above is symmetric: collocated (each mode's output shape is its input
+shape), ``K = [[7, 1], [1, 7]] / m``, unit actuator and sensor gains and the
+same lead-PID on both corners, so ``P = P^T`` and ``C = c I``: a transposed
+matrix or swapped sensitivities give the same answer there. ``asymmetry=seed``
+draws from the seed actuator and sensor gains (0.7-1.4 per corner,
+``P = diag(g_y) P_phys diag(g_u)``), a centre of gravity off the plate centre
+(``K_11 != K_22``), sensors a small distance from their actuators (``K`` not
+symmetric; each mode's sensor values 0.75-1.25 times its actuator values:
+non-collocated) and a lead-PID per corner on its own effective mass
+``1 / (g_y,j K_jj g_u,j)`` with its own bandwidth, the loop checked stable
+with >= 30 deg phase margin and gain margin >= 2 per loop (the other loop
+closed), as :func:`lrmfrf.plants.random_stage` requires. Effects act on the
+physical plant between the gains: a gain, delay or low-pass on both inputs,
+a missing mode ``c b^T / m`` (physical shapes, seen through the gains), a
+mode shift keeping both shapes.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -60,11 +78,23 @@ OPEN_LOOP_SUSPENSION = (5.0, 0.1)
 
 @dataclass(frozen=True)
 class StageMode:
-    """A flexible mode of the 2x2 stage: ``phi`` at the two corners."""
+    """A flexible mode of the 2x2 stage: ``phi`` at the two corners.
+
+    ``shape`` is the mode's value at the two actuators (input row
+    ``shape / m``); ``output_shape`` its value at the two sensors (output
+    column ``output_shape / w``), ``None`` when the sensors sit on the
+    actuators (collocated: ``output_shape`` is ``shape``).
+    """
 
     frequency_hz: float
     damping: float
-    shape: tuple  # (2,): input and output shape (collocated)
+    shape: tuple  # (2,): input shape (and output shape when collocated)
+    output_shape: tuple | None = None
+
+    @property
+    def sensor_shape(self) -> tuple:
+        """The mode's value at the two sensors."""
+        return self.shape if self.output_shape is None else self.output_shape
 
 
 @dataclass(frozen=True, eq=False)
@@ -87,6 +117,14 @@ class TwoByTwoStage:
     sizing : {"plate", "siso"}
         How the modes were sized (:func:`two_by_two_stage`); also the rule of
         a drawn missing mode's shape (:func:`draw_mimo_effect`).
+    input_gains, output_gains : (float, float)
+        Actuator gains (N per unit command) and sensor gains (unit per m):
+        ``P = diag(output_gains) P_phys diag(input_gains)``; ``(1, 1)`` for
+        the symmetric stage.
+    asymmetry : dict or None
+        What :func:`two_by_two_stage` drew for an asymmetric stage (centre of
+        gravity offset, sensor offset, controller bandwidths per loop...);
+        ``None`` for the symmetric stage.
     """
 
     rigid: np.ndarray
@@ -97,6 +135,9 @@ class TwoByTwoStage:
     controller: control.StateSpace | None
     suspension: tuple | None
     sizing: str = "plate"
+    input_gains: tuple = (1.0, 1.0)
+    output_gains: tuple = (1.0, 1.0)
+    asymmetry: dict | None = None
 
     @property
     def resonance_frequencies_hz(self) -> tuple:
@@ -115,7 +156,8 @@ class TwoByTwoStage:
         blocks.append(rigid)
         b_rows.append(np.vstack([np.zeros((2, 2)), self.rigid]))
         c_cols.append(np.hstack([np.eye(2), np.zeros((2, 2))]))
-        table = [(m.frequency_hz, m.damping, np.asarray(m.shape), np.asarray(m.shape))
+        table = [(m.frequency_hz, m.damping, np.asarray(m.sensor_shape),
+                  np.asarray(m.shape))
                  for m in (self.modes if modes is None else modes)]
         table += [(f, z, np.asarray(c, float), np.asarray(b, float))
                   for f, z, c, b in extra]
@@ -124,8 +166,11 @@ class TwoByTwoStage:
             blocks.append(np.array([[0.0, w], [-w, -2 * damping * w]]))
             b_rows.append(np.vstack([np.zeros(2), b / self.mass]))
             c_cols.append(np.column_stack([c / w, np.zeros(2)]))
-        return control.ss(scipy.linalg.block_diag(*blocks), np.vstack(b_rows),
-                          np.hstack(c_cols), np.zeros((2, 2)))
+        B, C = np.vstack(b_rows), np.hstack(c_cols)
+        if self.asymmetry is not None:  # actuator and sensor gains
+            B = B * np.asarray(self.input_gains, dtype=float)[None, :]
+            C = np.asarray(self.output_gains, dtype=float)[:, None] * C
+        return control.ss(scipy.linalg.block_diag(*blocks), B, C, np.zeros((2, 2)))
 
     @property
     def plant(self) -> control.StateSpace:
@@ -135,7 +180,8 @@ class TwoByTwoStage:
 
 def two_by_two_stage(stage, *, loop: str = "closed",
                      downsampling_factor: int | None = None,
-                     sizing: str = "plate") -> TwoByTwoStage:
+                     sizing: str = "plate",
+                     asymmetry=None) -> TwoByTwoStage:
     """Cut the 2x2 stage of corners 1 and 2 from a four-corner plate stage.
 
     Parameters
@@ -163,6 +209,21 @@ def two_by_two_stage(stage, *, loop: str = "closed",
         plate's own values are 7 times smaller relative to the corner's
         compliance. A drawn missing mode is then sized by the SISO rule too
         (:func:`draw_mimo_effect`).
+    asymmetry : int, numpy.random.Generator or None, default None
+        ``None``: the symmetric stage above (bit for bit the stages before
+        this option). Otherwise a seed (or generator) from which an
+        asymmetric stage is drawn, the same for both loops
+        (:func:`_draw_asymmetry`): actuator and sensor gains 0.7-1.4 per
+        corner, the centre of gravity off the plate centre (``K_11 !=
+        K_22``), each sensor a small distance from its actuator (the rigid
+        compliance is not symmetric and each mode's sensor values differ
+        from its actuator values: non-collocated), and in closed loop a
+        lead-PID per corner tuned on that corner's own effective mass, with
+        its own bandwidth (0.6-1 times the stage's). The loop is checked
+        stable with each loop's phase margin >= 30 deg and gain margin >= 2
+        when the other loop is closed (the margins of
+        :func:`lrmfrf.plants.random_stage`); both bandwidths are halved
+        until it is, up to 7 times.
 
     Returns
     -------
@@ -174,6 +235,9 @@ def two_by_two_stage(stage, *, loop: str = "closed",
         raise ValueError(f"`loop` must be 'closed' or 'open'; got {loop!r}.")
     if sizing not in ("plate", "siso"):
         raise ValueError(f"`sizing` must be 'plate' or 'siso'; got {sizing!r}.")
+    if asymmetry is not None:
+        return _asymmetric_stage(stage, loop, downsampling_factor, sizing,
+                                 np.random.default_rng(asymmetry))
     full = stage.plant_continuous
     A, B, C = (np.asarray(m, dtype=float) for m in (full.A, full.B, full.C))
     rigid = C[0:2, [0, 2, 4]] @ B[[1, 3, 5], 0:2]
@@ -202,6 +266,151 @@ def two_by_two_stage(stage, *, loop: str = "closed",
                                  controller, None, sizing)
         bandwidth /= 2
     raise RuntimeError("no stable diagonal lead-PID loop for this 2x2 stage.")
+
+
+#: Ranges of an asymmetric stage (:func:`_draw_asymmetry`).
+ASYMMETRY_RANGES = {
+    "gain": (0.7, 1.4),  # actuator and sensor gains, per corner
+    "cog_offset": 0.3,  # centre of gravity offset, fraction of the half-width
+    "sensor_offset": (0.05, 0.15),  # sensor-actuator distance / min half-width
+    "mode_sensor_ratio": (0.75, 1.25),  # a mode's sensor / actuator value
+    "bandwidth_ratio": (0.6, 1.0),  # a loop's bandwidth / the stage's
+}
+
+
+def _draw_asymmetry(stage, rng: np.random.Generator) -> dict:
+    """Draw an asymmetric 2x2 cut of a four-corner plate (corners 1 and 2).
+
+    Every draw is made whatever the loop, in a fixed order, so that the open-
+    and closed-loop stages of one seed have the same plant.
+
+    * ``input_gains``, ``output_gains``: actuator and sensor gains per corner,
+      uniform in ``ASYMMETRY_RANGES["gain"]`` (0.7-1.4).
+    * ``cog``: the centre of gravity at ``(dx, dy)`` from the plate centre,
+      each uniform within +-30 % of the half-width (a payload off centre; the
+      inertias about the centre of gravity kept). The lever arms of the two
+      corners then differ, so ``K_11 != K_22``.
+    * ``sensor_xy``: each sensor a distance 5-15 % of the smaller half-width
+      from its actuator, in a uniform direction. The rigid compliance is
+      ``K = R_s diag(1/m, 1/J_x, 1/J_y) R_a^T`` (``R`` the rows ``(1, y,
+      -x)`` of the sensors and actuators relative to the centre of gravity),
+      no longer symmetric.
+    * ``mode_sensor_ratio``: per mode and corner, the mode's value at the
+      sensor over its value at the actuator, uniform 0.75-1.25 (the plate's
+      low-order shapes change by about that much over such an offset;
+      ``random_stage`` gives the corner values only, not the shape
+      functions), so each mode's output shape differs from its input shape.
+    * ``bandwidth_ratio``: per loop, 0.6-1.0 times the stage's bandwidth.
+    """
+    low, high = ASYMMETRY_RANGES["gain"]
+    input_gains = rng.uniform(low, high, 2)
+    output_gains = rng.uniform(low, high, 2)
+    half = np.asarray(stage.half_width, dtype=float)
+    cog = ASYMMETRY_RANGES["cog_offset"] * rng.uniform(-1.0, 1.0, 2) * half
+    low, high = ASYMMETRY_RANGES["sensor_offset"]
+    distance = rng.uniform(low, high, 2) * float(np.min(half))
+    angle = rng.uniform(0.0, 2 * math.pi, 2)
+    actuator_xy = np.array([[half[0], half[1]], [-half[0], half[1]]])
+    sensor_xy = actuator_xy + distance[:, None] * np.column_stack(
+        [np.cos(angle), np.sin(angle)])
+    low, high = ASYMMETRY_RANGES["mode_sensor_ratio"]
+    ratios = rng.uniform(low, high, (len(stage.modes), 2))
+    low, high = ASYMMETRY_RANGES["bandwidth_ratio"]
+    bandwidth_ratio = rng.uniform(low, high, 2)
+    return {"input_gains": tuple(float(v) for v in input_gains),
+            "output_gains": tuple(float(v) for v in output_gains),
+            "cog": tuple(float(v) for v in cog),
+            "actuator_xy": actuator_xy, "sensor_xy": sensor_xy,
+            "mode_sensor_ratio": ratios,
+            "bandwidth_ratio": tuple(float(v) for v in bandwidth_ratio)}
+
+
+def _rigid_compliance(stage, actuator_xy, sensor_xy, cog) -> np.ndarray:
+    """``K = R_s diag(1/m, 1/J_x, 1/J_y) R_a^T`` about the centre of gravity."""
+
+    def rows(points):
+        points = np.asarray(points, dtype=float) - np.asarray(cog, dtype=float)
+        return np.column_stack([np.ones(len(points)), points[:, 1], -points[:, 0]])
+
+    inverse = np.diag([1.0 / float(stage.mass), 1.0 / float(stage.inertia[0]),
+                       1.0 / float(stage.inertia[1])])
+    return rows(sensor_xy) @ inverse @ rows(actuator_xy).T
+
+
+def _asymmetric_stage(stage, loop: str, downsampling_factor, sizing: str,
+                      rng: np.random.Generator) -> TwoByTwoStage:
+    """The asymmetric 2x2 stage of :func:`two_by_two_stage` (``asymmetry``)."""
+    drawn = _draw_asymmetry(stage, rng)
+    rigid = _rigid_compliance(stage, drawn["actuator_xy"], drawn["sensor_xy"],
+                              drawn["cog"])
+    mass = float(stage.mass)
+    scale = (math.sqrt(mass * float(np.mean(np.diag(rigid))))
+             if sizing == "siso" else 1.0)
+    modes = []
+    for mode, ratio in zip(stage.modes, drawn["mode_sensor_ratio"], strict=True):
+        if not np.any(np.abs(mode.corners[0:2]) > 1e-9):
+            continue
+        shape = scale * np.asarray(mode.corners[0:2], dtype=float)
+        modes.append(StageMode(float(mode.frequency_hz), float(mode.damping),
+                               tuple(float(v) for v in shape),
+                               tuple(float(v) for v in shape * ratio)))
+    F = (stage.downsampling_factor if downsampling_factor is None
+         else downsampling_factor)
+    info = {k: drawn[k] for k in ("cog", "bandwidth_ratio")}
+    info["sensor_offset"] = tuple(
+        float(v) for v in np.linalg.norm(drawn["sensor_xy"] - drawn["actuator_xy"],
+                                         axis=1))
+    base = TwoByTwoStage(rigid, mass, tuple(modes), stage.sample_time, int(F),
+                         None, OPEN_LOOP_SUSPENSION if loop == "open" else None,
+                         sizing, drawn["input_gains"], drawn["output_gains"], info)
+    if loop == "open":
+        return base
+    from ..plants.loops import lead_pid_controller
+
+    plant = base.plant
+    # each corner's effective mass: 1 / (its diagonal compliance with gains)
+    masses = [1.0 / (drawn["output_gains"][j] * rigid[j, j] * drawn["input_gains"][j])
+              for j in range(2)]
+    bandwidths = [float(stage.controller_bandwidth) * r
+                  for r in drawn["bandwidth_ratio"]]
+    for _ in range(8):
+        parts = [lead_pid_controller(bandwidths[j], masses[j],
+                                     sample_time=stage.sample_time) for j in range(2)]
+        controller = control.append(*parts)
+        if _loops_acceptable(plant, parts):
+            info = {**info, "bandwidth_hz": tuple(bandwidths)}
+            return dataclasses.replace(base, controller=controller, suspension=None,
+                                       asymmetry=info)
+        bandwidths = [b / 2 for b in bandwidths]
+    raise RuntimeError("no stable lead-PID loop with 30 deg phase margin per loop "
+                       "for this asymmetric 2x2 stage.")
+
+
+def _loops_acceptable(plant, parts, *, min_phase_margin: float = 30.0,
+                      min_gain_margin: float = 2.0) -> bool:
+    """The 2x2 loop with the diagonal controller ``parts`` is stable and each
+    loop, broken with the other one closed, has the margins of
+    :func:`lrmfrf.plants.random_stage`."""
+    from ..plants.loops import loop_margins
+
+    closed = control.feedback(plant, control.append(*parts), sign=-1)
+    if np.max(np.abs(np.linalg.eigvals(closed.A))) >= 1.0:
+        return False
+    dt = plant.dt
+    zero = control.ss(np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0)),
+                      [[0.0]], dt)
+    for j in range(2):
+        other = [zero, zero]
+        other[1 - j] = parts[1 - j]
+        half_closed = control.feedback(plant, control.append(*other), sign=-1)
+        try:
+            margins = loop_margins(half_closed[j, j], parts[j])
+        except ValueError:
+            return False
+        if not (margins.phase_margin >= min_phase_margin
+                and margins.gain_margin >= min_gain_margin):
+            return False
+    return True
 
 
 def draw_mimo_effect(name: str, rng: np.random.Generator,
@@ -349,8 +558,8 @@ def _true_plant(stage: TwoByTwoStage, effects) -> control.StateSpace:
                           effect.extra["b"]))
         elif effect.name == "mode_shift":
             old = modes[effect.extra["mode_index"]]
-            modes[effect.extra["mode_index"]] = StageMode(p["frequency"], p["damping"],
-                                                          old.shape)
+            modes[effect.extra["mode_index"]] = dataclasses.replace(
+                old, frequency_hz=p["frequency"], damping=p["damping"])
         else:
             raise ValueError(f"unknown effect {effect.name!r}")
     continuous = stage.plant_continuous(modes, extra) * gain
