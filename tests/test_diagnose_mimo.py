@@ -174,6 +174,30 @@ def test_siso_sizing_sizes_modes_relative_to_the_corner_like_the_siso_stages():
         two_by_two_stage(plate, loop="open", sizing="large")
 
 
+@pytest.mark.parametrize("seed", [1007, 2001])
+def test_the_symmetric_closed_loop_has_the_random_stages_margins(seed):
+    # item 1's margins (>= 30 deg, gain margin >= 2) for each loop, broken
+    # with the other one closed; a stability check alone let these SISO-sized
+    # stages through with 26.7 deg (gain margin 1.59) and 18.2 deg
+    from lrmfrf.plants.loops import loop_margins
+
+    plate, draw = random_stage(seed, mimo=True)
+    stage = two_by_two_stage(plate, downsampling_factor=draw.downsampling_factor,
+                             sizing="siso")
+    plant, controller = stage.plant, stage.controller
+    closed = control.feedback(plant, controller, sign=-1)
+    assert np.max(np.abs(np.linalg.eigvals(closed.A))) < 1.0
+    zero = control.ss(np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0)),
+                      [[0.0]], plant.dt)
+    for j in range(2):
+        other = [zero, zero]
+        other[1 - j] = controller[1 - j, 1 - j]
+        half_closed = control.feedback(plant, control.append(*other), sign=-1)
+        margins = loop_margins(half_closed[j, j], controller[j, j])
+        assert margins.phase_margin >= 30.0
+        assert margins.gain_margin >= 2.0
+
+
 def test_a_drawn_effect_that_destabilises_the_loop_is_drawn_again():
     # the SISO generator redraws such effects; this 2x2 stage's first delay
     # draw (0.525 ms) makes its closed loop unstable
