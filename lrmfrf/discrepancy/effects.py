@@ -118,11 +118,6 @@ class EffectContext:
         Smoothed whitened squared residual (the discrepancy spectrum).
     resonances : list of Resonance
         Lightly damped modes of ``plant``.
-    modal_resonances : list of Resonance or None
-        Lightly damped modes of the plant the modal effects (``order`` 0,
-        mode shifts) act on: the nominal plant with the accepted mode shifts,
-        without the modes accepted missing modes added (those are applied
-        after the shifts, so a shift cannot move them). None: ``resonances``.
     sensitivity : ndarray of shape (K,), complex, or pair of ndarrays
         ``dG/dP`` of the measured system at the model (1 without controller).
         MIMO: the pair ``(S_o, S_i)`` of shapes (n_y, n_y, K) and
@@ -131,6 +126,11 @@ class EffectContext:
         ``G_meas - G_model``.
     std : ndarray of the shape of ``residual``
         Calibrated standard deviation of ``G_meas``.
+    modal_resonances : list of Resonance or None
+        Lightly damped modes of the plant the modal effects (``order`` 0,
+        mode shifts) act on: the nominal plant with the accepted mode shifts,
+        without the modes accepted missing modes added (those are applied
+        after the shifts, so a shift cannot move them). None: ``resonances``.
 
     For MIMO, ``plant_ratio`` and ``plant_weight`` are per entry,
     ``(n_y, n_u, K)``; ``discrepancy`` is the bin power's moving mean, (K,).
@@ -143,10 +143,10 @@ class EffectContext:
     plant_weight: np.ndarray
     discrepancy: np.ndarray
     resonances: list = field(default_factory=list)
-    modal_resonances: list | None = None
     sensitivity: np.ndarray | None = None
     residual: np.ndarray | None = None
     std: np.ndarray | None = None
+    modal_resonances: list | None = None
 
     @property
     def nyquist(self) -> float:
