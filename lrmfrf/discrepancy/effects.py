@@ -28,9 +28,10 @@ model_error     zero_frequency, zero_damping, ``P -> H P``, ``H`` a unit-DC-gain
 reported with the finding's evidence, not in ``parameters``).
 
 Per-channel effects (MIMO only; they expand to nothing on a SISO plant and
-on the side with a single channel, where they would be ``gain`` or
-``low_pass`` again). Each is one candidate per channel (:meth:`Effect.expand`,
-as ``mode_shift`` is one per mode); the channel is chosen, not fitted, and is
+on the side with a single channel, where they would be ``gain``,
+``low_pass`` or ``delay`` again). Each is one candidate per channel
+(:meth:`Effect.expand`, as ``mode_shift`` is one per mode); the channel is
+chosen, not fitted, and is
 reported as an integer parameter (``input=j`` or ``output=i``, 0-based, the
 ``u0, u1, ...`` and ``y0, y1, ...`` of :meth:`DiagnosisReport.plot_grid`):
 
@@ -43,19 +44,23 @@ output_gain     output (i), gain              row ``i`` of ``P`` times ``gain``
                                               (one sensor's scale)
 input_low_pass  input (j), cutoff (Hz)        input ``j`` through
                                               ``1 / (1 + s / (2 pi cutoff))``
+input_delay     input (j), delay (s)          input ``j`` delayed by ``delay``
+                                              (one actuator's delay; the
+                                              model's delay is then one per
+                                              input)
 ==============  ===========================  ====================================
 
 A per-channel effect names the all-channel effect it refines
-(:attr:`Effect.parent`: ``gain`` or ``low_pass``); the search prefers the
-parent unless the per-channel candidate is better by the ``ic_margin`` of
-:func:`lrmfrf.diagnose` (a refinement has to earn its channel).
+(:attr:`Effect.parent`: ``gain``, ``low_pass`` or ``delay``); the search
+prefers the parent unless the per-channel candidate is better by the
+``ic_margin`` of :func:`lrmfrf.diagnose` (a refinement has to earn its
+channel).
 
 MIMO plants (``n_y`` outputs, ``n_u`` inputs). ``gain``, ``delay``,
 ``low_pass`` and ``model_error`` act on every input channel alike (one
 parameter set: an actuator-chain error common to all channels; one channel's
-gain or bandwidth is the per-channel effects' above; one channel's delay has
-no effect of its own, since the model's delay is common to all inputs, and
-shows as a weaker fit or an ``ambiguous`` step). ``missing_mode`` adds
+gain, bandwidth or delay is the per-channel effects' above; ``delay`` adds
+to each input's own delay). ``missing_mode`` adds
 a mode with the rank-one real residue ``c b^T`` (a mode shape: ``c`` over the
 outputs, ``b`` over the inputs), ``P -> P + c b^T / (s^2 + 2 z w s + w^2)``;
 its nuisance parameters are ``residue_0 .. residue_{n_y-1}`` (``c``) and the
