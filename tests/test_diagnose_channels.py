@@ -378,6 +378,29 @@ def test_an_explicit_channel_must_exist(stage):
     assert InputGain(channel=0).expand(_context(siso))[0].channel == 0
 
 
+def test_diagnose_refuses_a_channel_outside_the_data_before_it_calibrates(
+        stage, monkeypatch):
+    """The range check ran only when the search expanded the catalogue: with
+    nothing significant at the nominal model (or ``max_effects=0``) a
+    ``channel=2`` of two inputs was accepted silently, and otherwise refused
+    only after the calibration runs. ``diagnose`` now checks it with the
+    other arguments, before any calibration (stubbed here to prove it)."""
+    import lrmfrf.discrepancy.workflow as workflow
+
+    def no_calibration(*args, **kwargs):
+        raise AssertionError("calibrated before the catalogue was checked")
+
+    monkeypatch.setattr(workflow, "Calibrator", no_calibration)
+    u, y = _experiment(stage, stage.plant_continuous())
+    for effect, match in ((InputGain(channel=2), "has 2 inputs"),
+                          (OutputGain(channel=-1), "has 2 outputs"),
+                          (InputDelay(channel=5), "has 2 inputs")):
+        with pytest.raises(ValueError, match=match):
+            diagnose(stage.plant, u, y, stage.downsampling_factor,
+                     controller=stage.controller, effects=[Gain(), effect],
+                     max_effects=0)
+
+
 def _ranked(costs: dict):
     """``(problem, fits)``: one-parameter candidates of the given costs on a
     problem of 2x2 entries and 100 bins, inflation 1, sorted by BIC."""

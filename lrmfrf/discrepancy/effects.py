@@ -560,16 +560,22 @@ class _ChannelEffect(Effect):
     def _count(self, plant: ContinuousPlant) -> int:
         return plant.n_inputs if self.side == "input" else plant.n_outputs
 
+    def check_channel(self, n_outputs: int, n_inputs: int) -> None:
+        """Raise ``ValueError`` unless ``channel`` (if given) is one of the
+        plant's ``n_inputs`` inputs (``n_outputs`` outputs for a sensor)."""
+        count = n_inputs if self.side == "input" else n_outputs
+        if self.channel is not None and not 0 <= self.channel < count:
+            noun = self.side + ("" if count == 1 else "s")
+            raise ValueError(
+                f"{self!r}: the plant has {count} {noun}, and `channel` is "
+                f"a 0-based index from 0 to {count - 1}. Pass an existing "
+                f"channel, or {type(self).__name__}() for one candidate "
+                "per channel.")
+
     def expand(self, context):
         count = self._count(context.plant)
         if self.channel is not None:
-            if not 0 <= self.channel < count:
-                noun = self.side + ("" if count == 1 else "s")
-                raise ValueError(
-                    f"{self!r}: the plant has {count} {noun}, and `channel` is "
-                    f"a 0-based index from 0 to {count - 1}. Pass an existing "
-                    f"channel, or {type(self).__name__}() for one candidate "
-                    "per channel.")
+            self.check_channel(context.plant.n_outputs, context.plant.n_inputs)
             return [self]
         if count < 2:
             return []
