@@ -175,6 +175,32 @@ def test_per_input_delays_are_each_column_with_its_own():
                           [0.2 * T, 0.2 * T])
 
 
+def test_a_delay_that_is_not_one_per_input_or_not_a_delay_is_refused():
+    """``ContinuousPlant.delay`` is one value or one per input, each >= 0 and
+    finite. A one-element tuple on two inputs was broadcast to both, a
+    negative delay was silently made 0 (a non-causal model answered as an
+    undelayed one), a wrong length failed with numpy's broadcast message
+    and NaN with "cannot convert float NaN to integer" at the first
+    response."""
+    rng = np.random.default_rng(0)
+    A = -np.diag([50.0, 80.0, 120.0])
+    B, C, D = (rng.standard_normal(shape) for shape in ((3, 2), (2, 3), (2, 2)))
+    T = 0.5e-3
+    for delay, match in (((T,), "one delay per input: 2 values"),
+                         ((T, 2 * T, 0.0), "one delay per input: 2 values"),
+                         ((-T, 0.0), "0 or more"), (-T, "0 or more"),
+                         ((np.nan, 0.0), "finite"), (np.inf, "finite"),
+                         (((T, T), (T, T)), "one delay per input: 2 values")):
+        with pytest.raises(ValueError, match=match):
+            ContinuousPlant(A, B, C, D, delay)
+    # lists and arrays are stored as the tuple the effects build
+    plant = ContinuousPlant(A, B, C, D, np.array([T, 2 * T]))
+    assert plant.delay == (T, 2 * T)
+    assert plant.with_(delay=[0.0, T]).delay == (0.0, T)
+    siso = ContinuousPlant(A, B[:, :1], C[:1], D[:1, :1], (0.3 * T,))
+    assert siso.delay == (0.3 * T,)
+
+
 def test_one_candidate_per_channel_and_none_for_siso(stage):
     plant = as_continuous_plant(stage.plant_continuous(), stage.sample_time,
                                 shape=(2, 2))
@@ -350,6 +376,29 @@ def test_an_explicit_channel_must_exist(stage):
     with pytest.raises(ValueError, match=r"the plant has 1 input, .* 0 to 0"):
         InputGain(channel=1).expand(_context(siso))
     assert InputGain(channel=0).expand(_context(siso))[0].channel == 0
+
+
+def test_diagnose_refuses_a_channel_outside_the_data_before_it_calibrates(
+        stage, monkeypatch):
+    """The range check ran only when the search expanded the catalogue: with
+    nothing significant at the nominal model (or ``max_effects=0``) a
+    ``channel=2`` of two inputs was accepted silently, and otherwise refused
+    only after the calibration runs. ``diagnose`` now checks it with the
+    other arguments, before any calibration (stubbed here to prove it)."""
+    import lrmfrf.discrepancy.workflow as workflow
+
+    def no_calibration(*args, **kwargs):
+        raise AssertionError("calibrated before the catalogue was checked")
+
+    monkeypatch.setattr(workflow, "Calibrator", no_calibration)
+    u, y = _experiment(stage, stage.plant_continuous())
+    for effect, match in ((InputGain(channel=2), "has 2 inputs"),
+                          (OutputGain(channel=-1), "has 2 outputs"),
+                          (InputDelay(channel=5), "has 2 inputs")):
+        with pytest.raises(ValueError, match=match):
+            diagnose(stage.plant, u, y, stage.downsampling_factor,
+                     controller=stage.controller, effects=[Gain(), effect],
+                     max_effects=0)
 
 
 def _ranked(costs: dict):

@@ -870,3 +870,20 @@ def test_mode_shift_candidates_target_only_modes_a_shift_can_move(monkeypatch):
         as_continuous_plant(experiment.plant, experiment.sample_time))}
     assert expanded
     assert set(expanded) <= nominal, set(expanded) - nominal
+
+
+def test_effect_context_keeps_its_positional_order():
+    # EffectContext is public (custom effects read it, their tests build it):
+    # modal_resonances, added later, comes after the fields it had before, so
+    # a context built positionally still gets its sensitivity, residual and
+    # std where they were (inserted after `resonances` it took the
+    # sensitivity as the list of modes to shift)
+    from lrmfrf.discrepancy.effects import EffectContext
+
+    freqs = np.linspace(10.0, 900.0, 5)
+    sensitivity, residual, std = (np.full(freqs.size, v) for v in (0.5, 0.1j, 0.2))
+    context = EffectContext(None, freqs, 1e-4, None, None, np.zeros(freqs.size), [],
+                            sensitivity, residual, std)
+    assert context.sensitivity is sensitivity
+    assert context.residual is residual and context.std is std
+    assert context.modal_resonances is None

@@ -92,6 +92,21 @@ def test_asymmetric_stage_is_what_it_claims(plate, stage):
     assert asym[0, 1] > 0.05 * np.abs(P[0, 1]).max()
 
 
+def test_actuator_and_sensor_gains_act_on_every_stage(plate):
+    """``P = diag(output_gains) P_phys diag(input_gains)`` also on the
+    symmetric stage: the gains were applied only when ``asymmetry`` was set,
+    so ``dataclasses.replace(symmetric, input_gains=(1, 1.2))`` (as the test
+    below does to an asymmetric stage) silently gave the unchanged plant."""
+    symmetric = two_by_two_stage(plate, loop="open")
+    z = _z(FREQS, symmetric.sample_time)
+    P = symmetric.plant(z)
+    changed = dataclasses.replace(symmetric, input_gains=(1.0, 1.2),
+                                  output_gains=(0.9, 1.0))
+    expected = np.array([[0.9, 0.9 * 1.2], [1.0, 1.2]])[:, :, None] * P
+    np.testing.assert_allclose(changed.plant(z), expected, rtol=1e-12,
+                               atol=1e-12 * np.abs(P).max())
+
+
 def test_asymmetric_stage_has_a_pid_per_loop_and_a_stable_loop(stage):
     C = frequency_response(stage.controller, FREQS, stage.sample_time)
     assert np.all(C[0, 1] == 0) and np.all(C[1, 0] == 0)

@@ -76,8 +76,13 @@ def check_settings(*, alpha, effect_alpha, ic_margin, max_effects,
     return settings
 
 
-def check_catalogue(effects) -> list[Effect]:
-    """The effect catalogue as a list (default: :func:`default_effects`)."""
+def check_catalogue(effects, shape: tuple = (1, 1)) -> list[Effect]:
+    """The effect catalogue as a list (default: :func:`default_effects`).
+
+    ``shape`` is the data's ``(n_y, n_u)``: a per-channel effect's explicit
+    channel must be one of them (checked here, not first when the search
+    expands the catalogue, which it does not when nothing is significant).
+    """
     catalogue = list(default_effects() if effects is None else effects)
     for entry in catalogue:
         if not isinstance(entry, Effect):
@@ -85,6 +90,9 @@ def check_catalogue(effects) -> list[Effect]:
                 f"`effects` must hold Effect instances. Got {type(entry).__name__}. "
                 "Subclass lrmfrf.discrepancy.Effect."
             )
+        check_channel = getattr(entry, "check_channel", None)
+        if check_channel is not None:
+            check_channel(*shape)
     return catalogue
 
 

@@ -44,7 +44,14 @@ class ContinuousPlant:
     delay : float or tuple of float
         Input delay in seconds, >= 0: one value for every input channel, or a
         tuple of ``n_u`` values, input ``j`` delayed by ``delay[j]`` (one
-        actuator's delay, :class:`lrmfrf.discrepancy.effects.InputDelay`).
+        actuator's delay, :class:`lrmfrf.discrepancy.effects.InputDelay`); a
+        list or array is stored as that tuple.
+
+    Raises
+    ------
+    ValueError
+        If a delay is negative or not finite, or ``delay`` is a sequence whose
+        length is not ``n_u``.
     """
 
     A: np.ndarray
@@ -53,6 +60,22 @@ class ContinuousPlant:
     D: np.ndarray
     delay: float = 0.0
     labels: tuple = field(default=(), compare=False)
+
+    def __post_init__(self):
+        delays = np.asarray(self.delay, dtype=float)
+        if delays.ndim:
+            if delays.shape != (self.n_inputs,):
+                raise ValueError(
+                    f"`delay` has shape {delays.shape}, but the plant has "
+                    f"{self.n_inputs} input(s): pass one delay for all inputs or "
+                    f"one delay per input: {self.n_inputs} values.")
+            object.__setattr__(self, "delay", tuple(float(d) for d in delays))
+        if not np.all(np.isfinite(delays)):
+            raise ValueError(f"`delay` must be finite seconds; got {self.delay!r}.")
+        if np.any(delays < 0):
+            raise ValueError("`delay` is an input delay in seconds, 0 or more "
+                             f"(a model cannot answer before its input); got "
+                             f"{self.delay!r}.")
 
     @property
     def n_states(self) -> int:

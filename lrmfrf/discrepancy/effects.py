@@ -28,9 +28,10 @@ model_error     zero_frequency, zero_damping, ``P -> H P``, ``H`` a unit-DC-gain
 reported with the finding's evidence, not in ``parameters``).
 
 Per-channel effects (MIMO only; they expand to nothing on a SISO plant and
-on the side with a single channel, where they would be ``gain`` or
-``low_pass`` again). Each is one candidate per channel (:meth:`Effect.expand`,
-as ``mode_shift`` is one per mode); the channel is chosen, not fitted, and is
+on the side with a single channel, where they would be ``gain``,
+``low_pass`` or ``delay`` again). Each is one candidate per channel
+(:meth:`Effect.expand`, as ``mode_shift`` is one per mode); the channel is
+chosen, not fitted, and is
 reported as an integer parameter (``input=j`` or ``output=i``, 0-based, the
 ``u0, u1, ...`` and ``y0, y1, ...`` of :meth:`DiagnosisReport.plot_grid`):
 
@@ -43,19 +44,23 @@ output_gain     output (i), gain              row ``i`` of ``P`` times ``gain``
                                               (one sensor's scale)
 input_low_pass  input (j), cutoff (Hz)        input ``j`` through
                                               ``1 / (1 + s / (2 pi cutoff))``
+input_delay     input (j), delay (s)          input ``j`` delayed by ``delay``
+                                              (one actuator's delay; the
+                                              model's delay is then one per
+                                              input)
 ==============  ===========================  ====================================
 
 A per-channel effect names the all-channel effect it refines
-(:attr:`Effect.parent`: ``gain`` or ``low_pass``); the search prefers the
-parent unless the per-channel candidate is better by the ``ic_margin`` of
-:func:`lrmfrf.diagnose` (a refinement has to earn its channel).
+(:attr:`Effect.parent`: ``gain``, ``low_pass`` or ``delay``); the search
+prefers the parent unless the per-channel candidate is better by the
+``ic_margin`` of :func:`lrmfrf.diagnose` (a refinement has to earn its
+channel).
 
 MIMO plants (``n_y`` outputs, ``n_u`` inputs). ``gain``, ``delay``,
 ``low_pass`` and ``model_error`` act on every input channel alike (one
 parameter set: an actuator-chain error common to all channels; one channel's
-gain or bandwidth is the per-channel effects' above; one channel's delay has
-no effect of its own, since the model's delay is common to all inputs, and
-shows as a weaker fit or an ``ambiguous`` step). ``missing_mode`` adds
+gain, bandwidth or delay is the per-channel effects' above; ``delay`` adds
+to each input's own delay). ``missing_mode`` adds
 a mode with the rank-one real residue ``c b^T`` (a mode shape: ``c`` over the
 outputs, ``b`` over the inputs), ``P -> P + c b^T / (s^2 + 2 z w s + w^2)``;
 its nuisance parameters are ``residue_0 .. residue_{n_y-1}`` (``c``) and the
@@ -118,11 +123,6 @@ class EffectContext:
         Smoothed whitened squared residual (the discrepancy spectrum).
     resonances : list of Resonance
         Lightly damped modes of ``plant``.
-    modal_resonances : list of Resonance or None
-        Lightly damped modes of the plant the modal effects (``order`` 0,
-        mode shifts) act on: the nominal plant with the accepted mode shifts,
-        without the modes accepted missing modes added (those are applied
-        after the shifts, so a shift cannot move them). None: ``resonances``.
     sensitivity : ndarray of shape (K,), complex, or pair of ndarrays
         ``dG/dP`` of the measured system at the model (1 without controller).
         MIMO: the pair ``(S_o, S_i)`` of shapes (n_y, n_y, K) and
@@ -131,6 +131,11 @@ class EffectContext:
         ``G_meas - G_model``.
     std : ndarray of the shape of ``residual``
         Calibrated standard deviation of ``G_meas``.
+    modal_resonances : list of Resonance or None
+        Lightly damped modes of the plant the modal effects (``order`` 0,
+        mode shifts) act on: the nominal plant with the accepted mode shifts,
+        without the modes accepted missing modes added (those are applied
+        after the shifts, so a shift cannot move them). None: ``resonances``.
 
     For MIMO, ``plant_ratio`` and ``plant_weight`` are per entry,
     ``(n_y, n_u, K)``; ``discrepancy`` is the bin power's moving mean, (K,).
@@ -143,10 +148,10 @@ class EffectContext:
     plant_weight: np.ndarray
     discrepancy: np.ndarray
     resonances: list = field(default_factory=list)
-    modal_resonances: list | None = None
     sensitivity: np.ndarray | None = None
     residual: np.ndarray | None = None
     std: np.ndarray | None = None
+    modal_resonances: list | None = None
 
     @property
     def nyquist(self) -> float:
@@ -555,16 +560,22 @@ class _ChannelEffect(Effect):
     def _count(self, plant: ContinuousPlant) -> int:
         return plant.n_inputs if self.side == "input" else plant.n_outputs
 
+    def check_channel(self, n_outputs: int, n_inputs: int) -> None:
+        """Raise ``ValueError`` unless ``channel`` (if given) is one of the
+        plant's ``n_inputs`` inputs (``n_outputs`` outputs for a sensor)."""
+        count = n_inputs if self.side == "input" else n_outputs
+        if self.channel is not None and not 0 <= self.channel < count:
+            noun = self.side + ("" if count == 1 else "s")
+            raise ValueError(
+                f"{self!r}: the plant has {count} {noun}, and `channel` is "
+                f"a 0-based index from 0 to {count - 1}. Pass an existing "
+                f"channel, or {type(self).__name__}() for one candidate "
+                "per channel.")
+
     def expand(self, context):
         count = self._count(context.plant)
         if self.channel is not None:
-            if not 0 <= self.channel < count:
-                noun = self.side + ("" if count == 1 else "s")
-                raise ValueError(
-                    f"{self!r}: the plant has {count} {noun}, and `channel` is "
-                    f"a 0-based index from 0 to {count - 1}. Pass an existing "
-                    f"channel, or {type(self).__name__}() for one candidate "
-                    "per channel.")
+            self.check_channel(context.plant.n_outputs, context.plant.n_inputs)
             return [self]
         if count < 2:
             return []

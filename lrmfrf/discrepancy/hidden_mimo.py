@@ -166,10 +166,9 @@ class TwoByTwoStage:
             blocks.append(np.array([[0.0, w], [-w, -2 * damping * w]]))
             b_rows.append(np.vstack([np.zeros(2), b / self.mass]))
             c_cols.append(np.column_stack([c / w, np.zeros(2)]))
-        B, C = np.vstack(b_rows), np.hstack(c_cols)
-        if self.asymmetry is not None:  # actuator and sensor gains
-            B = B * np.asarray(self.input_gains, dtype=float)[None, :]
-            C = np.asarray(self.output_gains, dtype=float)[:, None] * C
+        # actuator and sensor gains (times 1.0, exact, on the symmetric stage)
+        B = np.vstack(b_rows) * np.asarray(self.input_gains, dtype=float)[None, :]
+        C = np.asarray(self.output_gains, dtype=float)[:, None] * np.hstack(c_cols)
         return control.ss(scipy.linalg.block_diag(*blocks), B, C, np.zeros((2, 2)))
 
     @property

@@ -99,7 +99,9 @@ def diagnose(
         fitted estimator is used as is (it must match the data sizes); an
         unfitted one is cloned and fitted to the data.
     effects : list of Effect, optional
-        Catalogue (default :func:`default_effects`).
+        Catalogue (default :func:`default_effects`). A per-channel effect
+        with an explicit ``channel`` must name one of the data's channels
+        (``ValueError`` otherwise, before any calibration).
     alpha : float, default=0.01
         False-alarm level of the global test (no findings when it passes).
     effect_alpha : float, default=1e-3
@@ -208,7 +210,7 @@ def diagnose(
         smoothing_bins=smoothing_bins, debias_rounds=debias_rounds,
     )
     steady_state = check_bool(steady_state, "steady_state")
-    catalogue = check_catalogue(effects)
+    catalogue = check_catalogue(effects, shape)
     rng = check_rng(rng)
     nominal, controller = check_models(plant, controller, sample_time, source,
                                        shape)
