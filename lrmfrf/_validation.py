@@ -363,6 +363,26 @@ class Records:
             self.y_form == "2d" and self.n_outputs > 1
         )
 
+    def independent_experiments(self) -> int:
+        """How many experiments have linearly independent inputs.
+
+        An experiment whose input record is a multiple or a linear combination
+        of the others' (the same excitation repeated, or scaled) gives, with
+        its own transient, no equation on the FRF that the others do not: the
+        local problems then have the equations of this many experiments only.
+        The records are scaled to unit norm (the amplitudes do not matter) and
+        an eigenvalue of their Gram matrix below ``1e-12`` of the largest
+        (a singular value below 1e-6) counts as dependence; all-zero records
+        count for none.
+        """
+        rows = self.u.reshape(self.n_experiments, -1)
+        norms = np.sqrt(np.einsum("pl,pl->p", rows, rows))
+        rows = rows[norms > 0] / norms[norms > 0, None]
+        if rows.shape[0] <= 1:
+            return rows.shape[0]
+        eigenvalues = np.linalg.eigvalsh(rows @ rows.T)
+        return int(np.sum(eigenvalues > 1e-12 * eigenvalues[-1]))
+
     def hint(self) -> str:
         """:data:`SEVERAL_EXPERIMENTS_HINT` when a 2-D array with several rows
         was given (a message about a shape that does not fit adds it), else
@@ -491,6 +511,7 @@ def check_local_degrees(
     parameter_names: dict | None = None,
     n_inputs: int = 1,
     hint: str = "",
+    n_independent: int | None = None,
 ) -> dict:
     """Check that the local problems are well posed and return the degrees.
 
@@ -519,6 +540,11 @@ def check_local_degrees(
         ``n_u``.
     hint : str, default=""
         Appended to the messages (e.g. :meth:`Records.hint`).
+    n_independent : int, optional
+        Experiments with linearly independent inputs
+        (:meth:`Records.independent_experiments`); default ``P``. Dependent
+        experiments add no equations on the FRF, so the count must also hold
+        with ``P`` replaced by this number.
 
     Returns
     -------
@@ -551,6 +577,25 @@ def check_local_degrees(
                 n_inputs,
             ) + hint
         )
+    independent = P if n_independent is None else n_independent
+    if independent < P:
+        n_params = (Rg + 1) * F * n_inputs + independent * (Rt + 1) + Re
+        n_equations = independent * window
+        if independent == 0 or n_equations < n_params:
+            raise ValueError(
+                f"The inputs of the {P} experiments are linearly dependent: only "
+                f"{independent} of them {'is' if independent == 1 else 'are'} "
+                "independent (an experiment repeats, "
+                "scales or combines the others' input), and a dependent "
+                "experiment, with its own transient, adds no equation on the "
+                "FRF. "
+                + (_too_few_equations_message(
+                    names, n, Rg, Rt, Re, F, independent, n_params, n_equations,
+                    max_half_window, n_inputs,
+                ) if independent else "Excite the system: every input record "
+                   "is zero.")
+                + hint
+            )
     return {
         "half_window": n,
         "num_degree": Rg,

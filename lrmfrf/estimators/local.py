@@ -167,6 +167,7 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         degrees = check_local_degrees(
             **local_degrees, F=F, n_slow=M, n_experiments=P,
             parameter_names=names, n_inputs=n_u, hint=records.hint(),
+            n_independent=records.independent_experiments(),
         )
         layout = LocalModelLayout(F=F, n_experiments=P, n_inputs=n_u, **degrees)
         # The FRF is a ratio: fit on records normalised by powers of two

@@ -705,12 +705,13 @@ class _LocalModelCV(_BaseFRFEstimator):
         candidates = self._candidates(params)
         P, n_u, N = u.shape
         M = y.shape[-1]
+        independent = records.independent_experiments()
         layouts, reasons = [], []
         for candidate in candidates:
             try:
                 degrees = check_local_degrees(
                     **self._degrees_of(candidate), F=F, n_slow=M, n_experiments=P,
-                    n_inputs=n_u,
+                    n_inputs=n_u, n_independent=independent,
                 )
             except ValueError as exc:
                 layouts.append(None)

@@ -1,0 +1,172 @@
+"""Non-square MIMO (n_y != n_u) on a random stage, against known truths: std
+calibration with one and with n_u experiments, predict's band sum, experiments
+whose inputs are linearly dependent, and the plant from a non-square closed
+loop that feeds back non-adjacent outputs (benchmarks/mimo_nonsquare.py has
+the larger Monte Carlo)."""
+
+from __future__ import annotations
+
+import warnings
+from types import SimpleNamespace
+
+import control
+import numpy as np
+import pytest
+
+from lrmfrf import (LPMBeyondNyquist, LRMBeyondNyquist, LRMBeyondNyquistCV,
+                    plant_from_closed_loop)
+from lrmfrf.plants import random_stage
+from lrmfrf.signals import multisine, orthogonal_multisines
+from lrmfrf.simulate import frequency_grid, simulate, true_frf
+
+
+@pytest.fixture(scope="module")
+def stage():
+    return random_stage(3, mimo=True)[0]
+
+
+def _independent_inputs(n_u, N, rng):
+    return np.stack([multisine(N, rng=rng) for _ in range(n_u)])
+
+
+@pytest.mark.parametrize("P", [1, 3])
+def test_two_by_three_std_matches_monte_carlo(stage, P):
+    """G[0:2, 0:3] (2 outputs, 3 inputs), F = 2, M = 200, 40 dB per output,
+    20 noise realisations with a fixed input: P = 3 orthogonal multisines
+    (default window) or one record of three multisines (half window 31).
+    Per entry, the median over bins of the predicted std (RMS over runs) over
+    the Monte-Carlo std is within 0.85-1.2 (measured 0.98-1.07; the std of a
+    20-run std is 16 % per bin, much less for the median over ~190 bins). The
+    std of the other output row (its own noise level) or the Lemma 2 std
+    (0.8-0.9x) fails it; the entries of one row have nearly the same std
+    here (equal input powers), so the test does not see an input mix-up."""
+    F, M, runs = 2, 200, 20
+    N = F * M
+    system = stage.G[0:2, 0:3]
+    if P == 3:
+        u, est = orthogonal_multisines(3, N, rng=0), LRMBeyondNyquist()
+    else:
+        u = _independent_inputs(3, N, np.random.default_rng(0))[None]
+        est = LRMBeyondNyquist(half_window=31)
+    fits, stds = [], []
+    for run in range(runs):
+        y = np.stack([simulate(system, u[p], F, snr_db=40, rng=10 * run + p).y_l
+                      for p in range(P)])
+        est.fit(u, y, F)
+        assert est.frf_.shape == est.frf_std_.shape == (2, 3, N // 2 + 1)
+        fits.append(est.frf_)
+        stds.append(est.frf_std_)
+    fits, stds = np.array(fits), np.array(stds)
+    spread = np.sqrt(np.mean(np.abs(fits - fits.mean(axis=0)) ** 2, axis=0))
+    predicted = np.sqrt(np.mean(stds**2, axis=0))
+    ratio = np.median((predicted / spread)[..., 1:-1], axis=-1)
+    assert np.all((ratio > 0.85) & (ratio < 1.2)), ratio
+    # noise-limited: the mean over the runs is within a few MC std / sqrt(runs)
+    truth = true_frf(system, N)
+    bias = np.abs(fits.mean(axis=0) - truth) / spread
+    assert np.all(np.median(bias[..., 1:-1], axis=-1) < 0.6)
+
+
+@pytest.mark.parametrize("n_y, n_u", [(3, 2), (2, 3), (1, 2), (2, 1)])
+def test_predict_is_the_band_sum_of_the_fitted_frf(stage, n_y, n_u):
+    """predict = ifft of Y_l(k) = (1/F) sum_f G(k + fM) U(k + fM) with the
+    fitted frf_, entry (o, i) applied to input i for output o."""
+    F, M = 3, 200
+    N = F * M
+    u = orthogonal_multisines(n_u, N, rng=1) if n_u > 1 else \
+        multisine(N, rng=1)[None, None]
+    y = np.stack([simulate(stage.G[0:n_y, 0:n_u], u[p], F, snr_db=60, rng=p).y_l
+                  for p in range(u.shape[0])])
+    est = LRMBeyondNyquist(half_window=20).fit(u, y, F)
+    full = np.concatenate([est.frf_, est.frf_[..., 1:(N + 1) // 2][..., ::-1].conj()],
+                          axis=-1)  # (n_y, n_u, N), two-sided
+    U = np.fft.fft(u, axis=-1)  # (P, n_u, N)
+    Y = np.einsum("oik,pik->pok", full, U).reshape(u.shape[0], n_y, F, M).mean(axis=2)
+    expected = np.fft.ifft(Y, axis=-1).real
+    predicted = est.predict(u)
+    assert predicted.shape == y.shape
+    np.testing.assert_allclose(predicted, expected, rtol=0,
+                               atol=1e-12 * np.abs(expected).max())
+
+
+@pytest.mark.parametrize("second", [lambda u: u, lambda u: -2.5 * u])
+def test_dependent_experiments_are_refused_with_the_fix(stage, second):
+    """Two experiments with the same (or a scaled) input and n_u = 2 give the
+    equations of one experiment: 37 < 42 parameters per window at the default
+    settings. It used to fit without a warning, valid everywhere (noise-free:
+    median relative error 0.017 with frf_std_ 1e-13 relative; 60 dB: 1.6
+    against 0.13 with orthogonal multisines). The error names the half window
+    and independent experiments; the inputs are not modified."""
+    F, M = 3, 200
+    N = F * M
+    u1 = _independent_inputs(2, N, np.random.default_rng(2))
+    u = np.stack([u1, second(u1)])
+    y = np.stack([simulate(stage.G[0:3, 0:2], u[p], F, snr_db=60, rng=p).y_l
+                  for p in range(2)])
+    before = u.copy(), y.copy()
+    with pytest.raises(ValueError, match=r"only 1 of them is independent.*"
+                       r"Increase half_window to at least 21.*different inputs"):
+        LRMBeyondNyquist().fit(u, y, F)
+    np.testing.assert_array_equal(u, before[0])
+    np.testing.assert_array_equal(y, before[1])
+    # the CV estimator skips the candidates it makes infeasible
+    cv = LRMBeyondNyquistCV(half_windows=(18, 24), num_degrees=(4,),
+                            den_degrees=(7,)).fit(u, y, F)
+    assert cv.best_params_["half_window"] == 24
+    # wide enough for one experiment: accepted (and LPM's smaller model too)
+    assert LRMBeyondNyquist(half_window=21).fit(u, y, F).valid_.all()
+    assert LPMBeyondNyquist().fit(u, y, F).valid_.all()
+
+
+def test_repeated_siso_experiments_and_independent_ones_stay_accepted():
+    """One input: a repeated experiment only needs the one-experiment window,
+    which the default has; P = 3 with a third input that sums the other two
+    counts as 2 experiments, enough for n_u = 3 at the default window."""
+    rng = np.random.default_rng(3)
+    F, N = 3, 600
+    u = multisine(N, rng=rng)
+    LRMBeyondNyquist().fit([u, u, 2 * u], list(rng.standard_normal((3, N // F))), F)
+    u3 = _independent_inputs(3, N, rng)
+    v3 = _independent_inputs(3, N, rng)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        LRMBeyondNyquist().fit(np.stack([u3, v3, u3 + v3]),
+                               rng.standard_normal((3, 2, N // F)), F)
+
+
+@pytest.mark.parametrize("rate", ["fast", "slow"])
+def test_plant_from_non_square_closed_loop_feeding_back_outputs_0_and_2(stage,
+                                                                        rate):
+    """Plant G[0:3, 0:2] of the stage (3 outputs, 2 inputs) in a loop whose 2x2
+    dynamic controller reads outputs 0 and 2, loop gain up to 6.6: the plant
+    from the exact closed-loop FRF to 1e-10 of max |P| (measured 9e-12 fast,
+    2e-14 slow). Fast: G_eq from control.feedback; slow: the forward map per
+    slow bin (tests/test_closed_loop.py)."""
+    from test_closed_loop import _slow_equivalent
+
+    plant = stage.G[0:3, 0:2]
+    ts, F, N = plant.dt, 3, 600
+    truth = true_frf(plant, N)
+    scale = np.abs(truth).max()
+    mix = 3.0 / scale * np.array([[1.0, 0.3], [-0.2, 0.8]])
+    dt = ts if rate == "fast" else F * ts
+    controller = control.ss(np.diag([0.8, 0.8]), np.eye(2), 0.2 * mix, mix, dt)
+    if rate == "fast":
+        select = np.zeros((2, 3))
+        select[0, 0] = select[1, 2] = 1
+        loop = control.feedback(plant, controller * control.ss([], [], [], select, ts))
+        closed = true_frf(loop, N)
+    else:
+        closed = _slow_equivalent(true_frf(plant, N, one_sided=False),
+                                  true_frf(controller, N // F, one_sided=False),
+                                  [0, 2])
+    fit = SimpleNamespace(
+        frequencies_=frequency_grid(N, ts), frf_=closed,
+        frf_std_=np.zeros(closed.shape), valid_=np.ones(closed.shape, bool),
+        sample_time_=ts, downsampling_factor_=F, n_inputs_=2, n_outputs_=3)
+    result = plant_from_closed_loop(fit, controller, [0, 2])
+    assert result.frf_.shape == (3, 2, N // 2 + 1) and result.loop_rate_ == rate
+    assert result.valid_.all()
+    assert np.abs(result.frf_ - truth).max() < 1e-10 * scale
+    frd = result.to_frd()
+    assert (frd.noutputs, frd.ninputs) == (3, 2)
