@@ -375,12 +375,17 @@ class Records:
         (a singular value below 1e-6) counts as dependence; all-zero records
         count for none.
         """
+        if self.n_experiments == 1:  # (an all-zero record: rank-deficient bins)
+            return 1
         rows = self.u.reshape(self.n_experiments, -1)
-        norms = np.sqrt(np.einsum("pl,pl->p", rows, rows))
-        rows = rows[norms > 0] / norms[norms > 0, None]
-        if rows.shape[0] <= 1:
-            return rows.shape[0]
-        eigenvalues = np.linalg.eigvalsh(rows @ rows.T)
+        gram = rows @ rows.T  # no copy of the records
+        norms = np.sqrt(np.diag(gram))
+        excited = norms > 0
+        gram = gram[np.ix_(excited, excited)] / np.outer(norms[excited],
+                                                          norms[excited])
+        if gram.shape[0] <= 1:
+            return gram.shape[0]
+        eigenvalues = np.linalg.eigvalsh(gram)
         return int(np.sum(eigenvalues > 1e-12 * eigenvalues[-1]))
 
     def hint(self) -> str:
