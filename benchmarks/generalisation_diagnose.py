@@ -60,8 +60,8 @@ of the 20 stages of seeds 1000-1009 and 2000-2009 (1001, 1002, 1006, 1007,
 2001-2004, 2006): their bandwidth is halved until the loop meets them (before
 stop 32 only stability was checked: 1007 and 2001-2004 had 18-27 deg or a
 gain margin of 1.6-2.0); a drawn effect that makes the
-loop unstable is drawn again (as the SISO generator does; 7 closed-loop
-records of those 20 stages: five delays of 0.52-0.95 ms redrawn to 0.1-0.2
+loop unstable is drawn again (as the SISO generator does; on the stages
+before the margin rule, 7 closed-loop records of those 20 stages: five delays of 0.52-0.95 ms redrawn to 0.1-0.2
 ms, a 406 Hz low-pass and a 283 Hz missing mode).
 ``--mimo-sizing plate`` keeps the plate's own sizes (the records before,
 where no closed-loop missing mode or mode shift reached ``gap_before >= 3``).
