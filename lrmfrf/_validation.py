@@ -373,12 +373,21 @@ class Records:
         The records are scaled to unit norm (the amplitudes do not matter) and
         an eigenvalue of their Gram matrix below ``1e-12`` of the largest
         (a singular value below 1e-6) counts as dependence; all-zero records
-        count for none.
+        count for none. Records of any finite amplitude count alike.
         """
         if self.n_experiments == 1:  # (an all-zero record: rank-deficient bins)
             return 1
+        from .local_models import power_of_two_exponent, scale_by_power_of_two
+
         rows = self.u.reshape(self.n_experiments, -1)
-        gram = rows @ rows.T  # no copy of the records
+        # records far from unit amplitude (e.g. 1e-170 or 1e160, which the
+        # estimators fit exactly) would under- or overflow in the Gram matrix:
+        # those are normalised by a power of two (a copy of those rows only)
+        exponents = [power_of_two_exponent(row) for row in rows]
+        if any(exponents):
+            rows = np.stack([scale_by_power_of_two(row, -e)
+                             for row, e in zip(rows, exponents)])
+        gram = rows @ rows.T  # no copy of ordinary records
         norms = np.sqrt(np.diag(gram))
         excited = norms > 0
         gram = gram[np.ix_(excited, excited)] / np.outer(norms[excited],

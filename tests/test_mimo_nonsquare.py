@@ -170,3 +170,24 @@ def test_plant_from_non_square_closed_loop_feeding_back_outputs_0_and_2(stage,
     assert np.abs(result.frf_ - truth).max() < 1e-10 * scale
     frd = result.to_frd()
     assert (frd.noutputs, frd.ninputs) == (3, 2)
+
+
+@pytest.mark.parametrize("exponent", [-565, 530])
+def test_independent_experiments_at_any_amplitude(stage, exponent):
+    """The estimators fit records of any finite amplitude exactly (scaled by a
+    power of two); the count of independent experiments must too. Records near
+    1e-170 or 1e160 underflowed or overflowed in the Gram matrix of the
+    records: 0 independent experiments, refused as all-zero inputs."""
+    F, M = 3, 200
+    N = F * M
+    rng = np.random.default_rng(4)
+    u = np.stack([_independent_inputs(2, N, rng) for _ in range(2)])
+    y = np.stack([simulate(stage.G[0:3, 0:2], u[p], F, snr_db=60, rng=p).y_l
+                  for p in range(2)])
+    reference = LRMBeyondNyquist().fit(u, y, F)
+    scaled = LRMBeyondNyquist().fit(np.ldexp(u, exponent), np.ldexp(y, exponent), F)
+    np.testing.assert_allclose(scaled.frf_, reference.frf_, rtol=1e-12, atol=0)
+    # a scaled copy is still dependent at that amplitude
+    dependent = np.ldexp(np.stack([u[0], -2.5 * u[0]]), exponent)
+    with pytest.raises(ValueError, match=r"only 1 of them is independent"):
+        LRMBeyondNyquist().fit(dependent, np.ldexp(y, exponent), F)
