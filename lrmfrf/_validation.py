@@ -582,15 +582,8 @@ def check_local_degrees(
             "longer record." + hint
         )
     P = n_experiments
-    n_params = (Rg + 1) * F * n_inputs + P * (Rt + 1) + Re
-    n_equations = P * window
-    if n_equations < n_params:
-        raise ValueError(
-            _too_few_equations_message(
-                names, n, Rg, Rt, Re, F, P, n_params, n_equations, max_half_window,
-                n_inputs,
-            ) + hint
-        )
+    # the dependent experiments first: their count is the stricter one, and
+    # the P-experiment advice (a window, more experiments) would not suffice
     independent = P if n_independent is None else n_independent
     if independent < P:
         n_params = (Rg + 1) * F * n_inputs + independent * (Rt + 1) + Re
@@ -610,6 +603,15 @@ def check_local_degrees(
                    "is zero.")
                 + hint
             )
+    n_params = (Rg + 1) * F * n_inputs + P * (Rt + 1) + Re
+    n_equations = P * window
+    if n_equations < n_params:
+        raise ValueError(
+            _too_few_equations_message(
+                names, n, Rg, Rt, Re, F, P, n_params, n_equations, max_half_window,
+                n_inputs,
+            ) + hint
+        )
     return {
         "half_window": n,
         "num_degree": Rg,

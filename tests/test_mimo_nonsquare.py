@@ -191,3 +191,20 @@ def test_independent_experiments_at_any_amplitude(stage, exponent):
     dependent = np.ldexp(np.stack([u[0], -2.5 * u[0]]), exponent)
     with pytest.raises(ValueError, match=r"only 1 of them is independent"):
         LRMBeyondNyquist().fit(dependent, np.ldexp(y, exponent), F)
+
+
+def test_dependent_experiments_are_named_before_the_p_experiment_count():
+    """LPM half_window=5, n_u = 2, the same input twice: too few equations
+    for 2 experiments as well (22 < 24). The message must be the dependent
+    one, whose half window (10) is enough; the 2-experiment count's advice
+    (half_window 6, "at least 3 experiments") was refused again once
+    followed."""
+    F, M = 3, 200
+    N = F * M
+    u1 = _independent_inputs(2, N, np.random.default_rng(5))
+    u = np.stack([u1, u1])
+    y = np.random.default_rng(6).standard_normal((2, 3, M))
+    with pytest.raises(ValueError, match=r"only 1 of them is independent.*"
+                       r"Increase half_window to at least 10\b"):
+        LPMBeyondNyquist(half_window=5).fit(u, y, F)
+    assert LPMBeyondNyquist(half_window=10).fit(u, y, F).frf_.shape == (3, 2, N // 2 + 1)
