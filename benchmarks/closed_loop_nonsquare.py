@@ -107,6 +107,9 @@ def main(argv=None):
               np.round(np.median((predicted / mc)[..., high], axis=-1), 3).tolist())
         print("  with the MC per-row cov of G_eq:",
               np.round(np.median((with_mc_cov / mc)[..., high], axis=-1), 3).tolist())
+        print("  with the estimator's frf_cov_, median over all bins but DC "
+              "and Nyquist:",
+              np.round(np.median((predicted / mc)[..., 1:-1], axis=-1), 3).tolist())
         print(f"  |corr| of G_eq errors, rows 0 and 2 (input 0): "
               f"{np.median(corr[high]):.2f} at those bins, "
               f"{np.median(corr[~high]):.2f} elsewhere")
