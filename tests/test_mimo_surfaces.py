@@ -109,3 +109,20 @@ def test_spectral_analysis_independent_inputs_do_not_warn():
         assert SpectralAnalysis().fit(u, y, 3).valid_.all()
         siso = SpectralAnalysis().fit(np.ones(1200), np.ones(400), 3)
     assert not siso.valid_.all()
+
+
+def test_lrm_dependent_inputs_warning_names_the_dependence():
+    """One record whose second input is twice the first: every local problem
+    is rank-deficient though both inputs excite every band. The warning only
+    advised 'an input that excites every band', which these inputs do; it now
+    names the dependence and orthogonal_multisines."""
+    from lrmfrf import LRMBeyondNyquist
+
+    rng = np.random.default_rng(4)
+    u1 = rng.standard_normal(1200)
+    y = lfilter([0.2, 0.1], [1, -0.5], u1)[::3]
+    with pytest.warns(IdentifiabilityWarning,
+                      match=r"\(0 of them because.*linearly dependent.*"
+                      "orthogonal_multisines"):
+        est = LRMBeyondNyquist(half_window=24).fit(np.stack([u1, 2 * u1]), y, 3)
+    assert not est.valid_.any()
