@@ -372,6 +372,17 @@ def test_npz_is_loaded_without_pickles(tmp_path, good):
         read_measurement(tmp_path / "junk.npz", F=3)
 
 
+def test_channels_first_array_names_the_mimo_layout(tmp_path, good):
+    """A MIMO record saved as one (n_u, N) array, the estimators' layout: the
+    fix named only 'one record per file as a 1-D vector', which reads as 'no
+    MIMO'; it now says to store one vector per channel and name them."""
+    u, y = good
+    np.savez(tmp_path / "mimo.npz", u=np.stack([u, -u]), y=y)
+    with pytest.raises(DataFileError, match=r"shape \(2, 60\).*one vector each "
+                       r"\(e.g. 'u1', 'u2'\), named with --input-column u1,u2"):
+        read_measurement(tmp_path / "mimo.npz", F=3)
+
+
 def test_mat_variables_are_validated(tmp_path, good):
     u, y = good
     scipy.io.savemat(tmp_path / "text.mat", {"u": "hello", "y": y})
