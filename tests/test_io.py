@@ -474,6 +474,20 @@ def test_frf_table_known_answers():
     np.testing.assert_array_equal(table["valid"], fit.valid_)
 
 
+def test_frf_table_does_not_share_memory_with_the_estimator():
+    """frequency_hz, std and valid were views of frequencies_, frf_std_ and
+    valid_: converting the table's frequencies to rad/s or masking its std
+    edited the fitted estimator."""
+    fit = _FakeFit(np.random.default_rng(11))
+    before = {name: np.copy(getattr(fit, name))
+              for name in ("frequencies_", "frf_", "frf_std_", "valid_")}
+    table = frf_table(fit)
+    for column in table.values():
+        column[...] = 0
+    for name, value in before.items():
+        np.testing.assert_array_equal(getattr(fit, name), value)
+
+
 def test_write_frf_csv_and_npz_round_trip(tmp_path):
     fit = _FakeFit(np.random.default_rng(10))
     table = frf_table(fit)
