@@ -167,3 +167,18 @@ def test_empty_name_in_a_column_list_is_refused(tmp_path, mimo, capsys):
     assert status == 2 and out == ""
     assert "has an empty name" in err and len(err.strip().splitlines()) == 1
     # diagnose takes column lists too (tests/test_cli_diagnose.py, MIMO section)
+
+
+def test_too_small_window_for_a_mimo_file_names_no_python_arrays(tmp_path, mimo,
+                                                                capsys):
+    """Two inputs, F = 2 and num_degree 6 with the default half window (18):
+    37 equations for 40 parameters. The error added the estimators' hint about 2-D arrays and 3-D stacks, which a
+    command-line user does not have; it now names the half window only."""
+    u, y = mimo
+    path = _csv(tmp_path / "d.csv", u, y)
+    status, out, err = _run(["fit", path, "--F", str(F), "--input-column", "u1,u2",
+                             "--output-column", "y1,y2", "--num-degree", "6",
+                             "--out", tmp_path / "o"], capsys)
+    assert status == 1 and out == ""
+    assert "Increase half_window to at least" in err
+    assert "2-D array" not in err and "3-D array" not in err

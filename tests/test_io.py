@@ -372,6 +372,17 @@ def test_npz_is_loaded_without_pickles(tmp_path, good):
         read_measurement(tmp_path / "junk.npz", F=3)
 
 
+def test_channels_first_array_names_the_mimo_layout(tmp_path, good):
+    """A MIMO record saved as one (n_u, N) array, the estimators' layout: the
+    fix named only 'one record per file as a 1-D vector', which reads as 'no
+    MIMO'; it now says to store one vector per channel and name them."""
+    u, y = good
+    np.savez(tmp_path / "mimo.npz", u=np.stack([u, -u]), y=y)
+    with pytest.raises(DataFileError, match=r"shape \(2, 60\).*one vector each "
+                       r"\(e.g. 'u1', 'u2'\), named with --input-column u1,u2"):
+        read_measurement(tmp_path / "mimo.npz", F=3)
+
+
 def test_mat_variables_are_validated(tmp_path, good):
     u, y = good
     scipy.io.savemat(tmp_path / "text.mat", {"u": "hello", "y": y})
@@ -461,6 +472,20 @@ def test_frf_table_known_answers():
     np.testing.assert_allclose(table["phase_deg"],
                                np.degrees(np.arctan2(fit.frf_.imag, fit.frf_.real)))
     np.testing.assert_array_equal(table["valid"], fit.valid_)
+
+
+def test_frf_table_does_not_share_memory_with_the_estimator():
+    """frequency_hz, std and valid were views of frequencies_, frf_std_ and
+    valid_: converting the table's frequencies to rad/s or masking its std
+    edited the fitted estimator."""
+    fit = _FakeFit(np.random.default_rng(11))
+    before = {name: np.copy(getattr(fit, name))
+              for name in ("frequencies_", "frf_", "frf_std_", "valid_")}
+    table = frf_table(fit)
+    for column in table.values():
+        column[...] = 0
+    for name, value in before.items():
+        np.testing.assert_array_equal(getattr(fit, name), value)
 
 
 def test_write_frf_csv_and_npz_round_trip(tmp_path):

@@ -241,7 +241,10 @@ def _fit_one(job: _Job, args, settings: dict, inputs: list[Path], write) -> str:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            estimator.fit(data.u_h, data.y_l, data.downsampling_factor,
+            # one experiment, as a list of one record: a 2-D MIMO record
+            # passed bare would add the estimators' hint about 2-D arrays
+            # (Python layouts) to a shape error, which means nothing here
+            estimator.fit([data.u_h], [data.y_l], data.downsampling_factor,
                           sample_time=data.sample_time)
         except (ValueError, TypeError) as exc:
             raise CLIError(f"{job.data}: {one_line(exc)}") from exc

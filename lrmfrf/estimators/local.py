@@ -277,6 +277,13 @@ class _LocalModelEstimator(_BaseFRFEstimator):
                 "False. Use an input that excites every band, e.g. a random-phase "
                 "multisine (lrmfrf.signals.multisine)."
             )
+            if n_u > 1 and n_bad > n_unexcited:
+                msg += (
+                    f" With {n_u} inputs, inputs that are linearly dependent "
+                    "(e.g. one a multiple of another) leave the problem "
+                    "rank-deficient too: excite them independently "
+                    "(lrmfrf.signals.orthogonal_multisines)."
+                )
             warnings.warn(msg, IdentifiabilityWarning, stacklevel=3)
         if layout.dof == 0:
             warnings.warn(

@@ -965,7 +965,10 @@ def _check_array_meta(path, name, shape, dtype_text, numeric, max_samples, kind)
         raise DataFileError(
             path,
             f"{kind} {name!r} has shape {tuple(shape)}, not a non-empty vector",
-            f"Store one record per file as a 1-D vector named {name!r}",
+            f"Store one record per file as a 1-D vector named {name!r}; several "
+            "channels as one vector each (e.g. 'u1', 'u2'), named with "
+            "--input-column u1,u2 (input_column=['u1', 'u2']) or "
+            "--output-column",
         )
     if size > max_samples:
         raise DataFileError(

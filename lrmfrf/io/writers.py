@@ -201,13 +201,16 @@ def frf_table(estimator) -> dict[str, np.ndarray]:
     ----------
     estimator : fitted estimator
         With ``frequencies_`` (Hz), ``frf_``, ``frf_std_`` and ``valid_``.
+        Fitted without ``sample_time``, ``frequencies_`` (and so the column
+        ``frequency_hz``) are in cycles per sample: pass ``sample_time``.
 
     Returns
     -------
     dict of str to ndarray of shape (n_freq,)
         Keys :data:`FRF_COLUMNS`: frequency in Hz, real and imaginary parts,
         magnitude in dB, phase in degrees (wrapped to (-180, 180]), standard
-        deviation of the complex estimate, and validity (bool). For a MIMO
+        deviation of the complex estimate, and validity (bool); new arrays,
+        not views of the estimator's attributes. For a MIMO
         estimate every column but ``frequency_hz`` has shape ``(n_y, n_u,
         n_freq)``, entry ``[o, i]`` from input ``i`` to output ``o``.
     """
@@ -215,14 +218,16 @@ def frf_table(estimator) -> dict[str, np.ndarray]:
     magnitude = np.abs(frf)
     with np.errstate(divide="ignore", invalid="ignore"):
         magnitude_db = 20.0 * np.log10(magnitude)
+    # new arrays throughout: a table edited (e.g. masked or converted to
+    # other units) must not edit the fitted estimator
     return {
-        "frequency_hz": np.asarray(estimator.frequencies_, dtype=float),
+        "frequency_hz": np.array(estimator.frequencies_, dtype=float),
         "real": frf.real.copy(),
         "imag": frf.imag.copy(),
         "magnitude_db": magnitude_db,
         "phase_deg": np.angle(frf, deg=True),
-        "std": np.asarray(estimator.frf_std_, dtype=float),
-        "valid": np.asarray(estimator.valid_, dtype=bool),
+        "std": np.array(estimator.frf_std_, dtype=float),
+        "valid": np.array(estimator.valid_, dtype=bool),
     }
 
 
