@@ -84,6 +84,7 @@ __all__ = [
     "RefinementGuardWarning",
     "RefinementResult",
     "refine_local_models",
+    "emit_refinement_warnings",
     "denominator_values",
     "denominator_roots",
     "output_error_cost",
@@ -236,6 +237,7 @@ def refine_local_models(
     chunk_size: int | None = None,
     verbose: bool = False,
     backend: str = "auto",
+    warn: bool = True,
 ) -> RefinementResult:
     """Refine closed-form local models with SK, then guarded LM iterations.
 
@@ -286,6 +288,10 @@ def refine_local_models(
         ``yhat``). Both give
         the same results up to round-off, except on windows where a guard
         decision sits on its threshold.
+    warn : bool, default=True
+        Emit the warnings below. ``False`` leaves them to the caller, e.g.
+        :func:`emit_refinement_warnings` once for the refinements of all the
+        output rows of a MIMO fit.
 
     Returns
     -------
@@ -361,7 +367,8 @@ def refine_local_models(
                 result.sk_cost_history, 2 * y_exponent
             ),
         )
-    _emit_warnings(result)
+    if warn:
+        emit_refinement_warnings([result])
     return result
 
 
@@ -490,27 +497,56 @@ def _caller_stacklevel() -> int:
     return level
 
 
-def _emit_warnings(result: RefinementResult) -> None:
-    """Warn once per fit, at the first caller outside the package."""
+def emit_refinement_warnings(results: list[RefinementResult]) -> None:
+    """Warn once for the refinements of one fit, at the first caller outside
+    the package.
+
+    ``results`` holds one refinement per output row (one for SISO). Each kind
+    of warning is emitted at most once, naming the rows it concerns when
+    there are several, e.g. ``in 601 of 602 windows (output row 0: 301 of
+    301, row 1: 300 of 301)``.
+
+    Warns
+    -----
+    sklearn.exceptions.ConvergenceWarning
+        When a stage of some row used all its iterations far from convergence.
+    RefinementGuardWarning
+        When the guard rejected iterates in some windows.
+    """
     stacklevel = _caller_stacklevel()
+    several = len(results) > 1
     names = (
-        ("Sanathanan-Koerner", "sk_iterations", result.sk_iterations),
-        ("Levenberg-Marquardt", "lm_iterations", result.lm_iterations),
+        ("Sanathanan-Koerner", "sk_iterations"),
+        ("Levenberg-Marquardt", "lm_iterations"),
     )
-    for far, (method, parameter, count) in zip(result.stopped_far, names, strict=True):
-        if far:
-            warnings.warn(
-                f"{method} used all {count} iterations while the mean cost was "
-                f"still dropping by more than {FAR_FROM_CONVERGENCE:.0e} per "
-                f"iteration. Increase `{parameter}` for a converged estimate.",
-                ConvergenceWarning,
-                stacklevel=stacklevel,
-            )
-    if result.n_guarded:
+    for stage, (method, parameter) in enumerate(names):
+        rows = [o for o, r in enumerate(results) if r.stopped_far[stage]]
+        if not rows:
+            continue
+        count = max((r.sk_iterations, r.lm_iterations)[stage]
+                    for r in (results[o] for o in rows))
+        where = (f" (output row{'s' if len(rows) > 1 else ''} "
+                 f"{', '.join(map(str, rows))})" if several else "")
+        warnings.warn(
+            f"{method} used all {count} iterations while the mean cost was "
+            f"still dropping by more than {FAR_FROM_CONVERGENCE:.0e} per "
+            f"iteration{where}. Increase `{parameter}` for a converged estimate.",
+            ConvergenceWarning,
+            stacklevel=stacklevel,
+        )
+    n_guarded = sum(r.n_guarded for r in results)
+    if n_guarded:
+        total = sum(r.guarded.size for r in results)
+        where = ""
+        if several:
+            where = " (" + ", ".join(
+                f"{'output row' if o == 0 else 'row'} {o}: "
+                f"{r.n_guarded} of {r.guarded.size}"
+                for o, r in enumerate(results)) + ")"
         warnings.warn(
             f"The refinement guard rejected degenerate iterates (a denominator "
             f"root near the window centre, or an FRF jump) in "
-            f"{result.n_guarded} of {result.guarded.size} windows; they keep "
+            f"{n_guarded} of {total} windows{where}; they keep "
             "their last good estimate. See `n_guarded_` / `guarded`.",
             RefinementGuardWarning,
             stacklevel=stacklevel,

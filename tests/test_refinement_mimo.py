@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import warnings
 
 import numpy as np
@@ -149,3 +150,27 @@ def test_mimo_histories_pool_the_output_rows():
     np.testing.assert_allclose(est.cost_history_, expected, rtol=1e-12)
     assert est.n_sk_iter_ == max(r.n_sk_iter_ for r in rows)
     assert est.n_guarded_ == sum(r.n_guarded_ for r in rows)
+
+
+def test_a_mimo_fit_warns_once_per_kind_and_names_the_rows():
+    """Refinement warnings of a 2-row fit: one of each kind, at the caller,
+    with the rows named and the guard counts adding up to ``n_guarded_`` (each
+    row warned on its own before, "1 of 201 windows" twice, naming no row)."""
+    from sklearn.exceptions import ConvergenceWarning
+
+    from lrmfrf.refinement import RefinementGuardWarning
+
+    u, y, F, _ = _stage_records(N=1200)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        est = LRMBeyondNyquist(lm_iterations=20).fit(list(u), list(y), F)
+    conv = [w for w in caught if w.category is ConvergenceWarning]
+    guard = [w for w in caught if w.category is RefinementGuardWarning]
+    assert len(conv) == 1 and len(guard) == 1, [str(w.message) for w in caught]
+    assert "(output rows 0, 1)" in str(conv[0].message)
+    assert est.n_guarded_ > 0
+    message = str(guard[0].message)
+    assert f"in {est.n_guarded_} of " in message
+    counts = [int(c) for c in re.findall(r"row \d: (\d+) of \d+", message)]
+    assert len(counts) == 2 and sum(counts) == est.n_guarded_, message
+    assert {w.filename for w in conv + guard} == {__file__}

@@ -32,7 +32,12 @@ from ..local_models import (
     rescale_local_fit,
     scale_by_power_of_two,
 )
-from ..refinement import pool_summaries, refine_local_models, result_summary
+from ..refinement import (
+    emit_refinement_warnings,
+    pool_summaries,
+    refine_local_models,
+    result_summary,
+)
 from ..solvers import resolve_backend
 from ..uncertainty import (
     DEFAULT_STD_METHOD,
@@ -194,6 +199,7 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         if whole:
             U = spectra.full_inputs()  # (P, n_u N): the F n_u bands
             self._refined_rows = []  # refinement summaries, one per output row
+            self._refinements = []  # their results, for one set of warnings
             fits = []
             for o in range(n_y):  # one local problem (one denominator) per row
                 Y_o = spectra.full_outputs(o)
@@ -209,7 +215,9 @@ class _LocalModelEstimator(_BaseFRFEstimator):
                     fit = calibrated_local_fit(U, Y_o, layout, local_fit,
                                                std_method)
                 fits.append(fit)
-            del U, self._refined_rows
+            if self._refinements:  # at the caller of fit, naming the rows
+                emit_refinement_warnings(self._refinements)
+            del U, self._refined_rows, self._refinements
             chunks = [(0, fits)]
         else:  # streamed, all output rows at once: no per-window parameters kept
             chunks = iter_calibrated_fit_rows(
@@ -585,11 +593,13 @@ default="eiv"
 
     def _refine(self, U, Y, layout, local_fit, params: dict, y_exponent: int):
         sk, lm = params["sk_iterations"], params["lm_iterations"]
-        result = refine_local_models(  # warns at the caller of fit
+        result = refine_local_models(  # fit warns once for all the rows
             U, Y, layout, local_fit, sk_iterations=sk, lm_iterations=lm,
             tol=params["tol"], guard=params["guard"], jump=params["jump"],
             keep_best=True, chunk_size=None, verbose=params["verbose"],
+            warn=False,
         )
+        self._refinements.append(result)
         self._refined_rows.append(result_summary(result))
         pooled = pool_summaries(self._refined_rows)  # the rows fitted so far
         self.cost_history_ = scale_by_power_of_two(
