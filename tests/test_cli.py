@@ -115,7 +115,7 @@ SUBPROCESS_CASES = {
 INPROCESS_CASES = {
     "bad local degrees": (["fit", "good.csv", *FIT, "--half-window", "3", "--out",
                            "o"], 1,
-                          ["good.csv", "Too few equations", "Increase half_window"]),
+                          ["good.csv", "Too few equations", "Increase --half-window"]),
     "out is a file": (["fit", "good.csv", *FIT, "--out", "good.csv"], 1,
                       ["good.csv", "--out is a file"]),
     "existing output": (["fit", "good.csv", *FIT, "--out", "taken"], 1,

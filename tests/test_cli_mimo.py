@@ -180,5 +180,28 @@ def test_too_small_window_for_a_mimo_file_names_no_python_arrays(tmp_path, mimo,
                              "--output-column", "y1,y2", "--num-degree", "6",
                              "--out", tmp_path / "o"], capsys)
     assert status == 1 and out == ""
-    assert "Increase half_window to at least" in err
+    assert "Increase --half-window to at least" in err
     assert "2-D array" not in err and "3-D array" not in err
+
+
+def test_the_window_error_speaks_in_flags_and_its_advice_works(tmp_path, mimo,
+                                                               capsys):
+    """The estimators' error names their parameters (``half_window``) and
+    advises more experiments, which ``lrmfrf fit`` cannot take (one file, one
+    experiment): the command names its flags, says so, and the half window
+    it names fits."""
+    import re
+
+    u, y = mimo
+    path = _csv(tmp_path / "d.csv", u, y)
+    args = ["fit", path, "--F", str(F), "--input-column", "u1,u2",
+            "--output-column", "y1,y2", "--num-degree", "6"]
+    status, _, err = _run(args + ["--out", tmp_path / "o"], capsys)
+    assert status == 1
+    assert "half_window" not in err and "--half-window=18" in err
+    assert "(num_degree+1)" in err  # formulas keep the parameter names
+    assert "fits each file as one experiment" in err
+    needed = re.search(r"Increase --half-window to at least (\d+)", err).group(1)
+    status, _, err = _run(args + ["--half-window", needed, "--out", tmp_path / "p"],
+                          capsys)
+    assert status == 0, err

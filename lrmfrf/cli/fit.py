@@ -9,6 +9,7 @@ failure leaves none of them.
 from __future__ import annotations
 
 import platform
+import re
 import shlex
 import sys
 import time
@@ -226,6 +227,26 @@ def _subfolder_names(inputs: list[Path]) -> list[str]:
     return names
 
 
+#: The estimators' parameters named in their errors, and this command's flags.
+_FLAGS = {name: "--" + name.replace("_", "-") for name in (
+    "half_window", "num_degree", "transient_degree", "den_degree",
+    "sk_iterations", "segment_length")}
+
+
+def _cli_words(text: str) -> str:
+    """An estimator's error in this command's words: its parameters as flags
+    (``half_window=40`` becomes ``--half-window=40``, which the command takes),
+    and, where it advises more experiments, that each file is fitted as one."""
+    for name, flag in _FLAGS.items():
+        # prose only: not in a formula such as "(num_degree+1)*F*n_u"
+        text = re.sub(rf"(?<![\w(-]){name}\b(?!\s*\+|\s+=)", flag, text)
+    if re.search(r"\bexperiments\b", text):
+        text += (" (lrmfrf fit fits each file as one experiment: fit several "
+                 "experiments together in Python, "
+                 "`est.fit([u1, u2], [y1, y2], F)`.)")
+    return text
+
+
 def _fit_one(job: _Job, args, settings: dict, inputs: list[Path], write) -> str:
     from ..io import atomic_group, frf_table, write_frf_csv, write_frf_npz
 
@@ -247,7 +268,7 @@ def _fit_one(job: _Job, args, settings: dict, inputs: list[Path], write) -> str:
             estimator.fit([data.u_h], [data.y_l], data.downsampling_factor,
                           sample_time=data.sample_time)
         except (ValueError, TypeError) as exc:
-            raise CLIError(f"{job.data}: {one_line(exc)}") from exc
+            raise CLIError(f"{job.data}: {_cli_words(one_line(exc))}") from exc
     elapsed = time.perf_counter() - start
     messages = [one_line(w.message) for w in caught]
     table = frf_table(estimator)
