@@ -374,6 +374,12 @@ class Records:
         an eigenvalue of their Gram matrix below ``1e-12`` of the largest
         (a singular value below 1e-6) counts as dependence; all-zero records
         count for none. Records of any finite amplitude count alike.
+
+        Only constant combinations of whole records count: the same
+        excitation shifted by whole slow samples (``F`` fast samples) has at
+        every bin the input direction of the original (up to a phase), so it
+        adds as few equations on the FRF, but it is counted as independent
+        (docs/method.md, section 4).
         """
         if self.n_experiments == 1:  # (an all-zero record: rank-deficient bins)
             return 1
@@ -592,8 +598,8 @@ def check_local_degrees(
             raise ValueError(
                 f"The inputs of the {P} experiments are linearly dependent: only "
                 f"{independent} of them {'is' if independent == 1 else 'are'} "
-                "independent (an experiment repeats, "
-                "scales or combines the others' input), and a dependent "
+                "independent (an experiment repeats, scales or combines the "
+                "others' input, or its input is zero), and a dependent "
                 "experiment, with its own transient, adds no equation on the "
                 "FRF. "
                 + (_too_few_equations_message(
