@@ -433,8 +433,10 @@ class Records:
         original's times a phase. When there are at most ``F n_u``
         experiments (more always combine at a bin), the count is therefore
         also the rank of those vectors at a typical bin (the median over up
-        to 256 spread bins with any input, singular values below ``1e-6`` of
-        the bin's largest counting as dependence), computed from one DFT of
+        to 256 spread bins with input in at least ``P`` of the band-input
+        entries, singular values below ``1e-6`` of the bin's largest counting
+        as dependence; an input that misses bands is left to the fit's
+        per-bin check), computed from one DFT of
         each record (``input_spectra``, the one-sided DFTs of ``u``
         ``(P, n_u, N//2+1)``, if the caller has them: any common scale).
         """
