@@ -58,8 +58,8 @@ diagonal lead-PID unstable, or short of 30 deg phase margin or a gain margin
 of 2 per loop (the margins of ``random_stage``), at the plate's bandwidth on 9
 of the 20 stages of seeds 1000-1009 and 2000-2009 (1001, 1002, 1006, 1007,
 2001-2004, 2006): their bandwidth is halved until the loop meets them (before
-stop 32 only stability was checked: 1007 and 2001-2004 had 18-27 deg or a
-gain margin of 1.6-2.0); a drawn effect that makes the
+the margin rule, whose results files end in ``_stop32``, only stability
+was checked: 1007 and 2001-2004 had 18-27 deg or a gain margin of 1.6-2.0); a drawn effect that makes the
 loop unstable is drawn again (as the SISO generator does; on the stages
 before the margin rule, 7 closed-loop records of those 20 stages: five delays of 0.52-0.95 ms redrawn to 0.1-0.2
 ms, a 406 Hz low-pass and a 283 Hz missing mode).

@@ -300,6 +300,54 @@ def parse_record_set(x, name: str, *, purpose: str = "fitting"):
     return data[None], form, (2 if form == "2d" else 1,)
 
 
+def _aliased_rank(spectrum_of, experiments, n_inputs: int, N: int, F: int,
+                  n_bins: int = 256) -> int | None:
+    """The typical rank over slow bins of the experiments' aliased inputs.
+
+    ``spectrum_of(p)`` is experiment ``p``'s one-sided input DFT ``(n_u,
+    N//2+1)``. At slow bin ``k`` an experiment gives the vector of ``U(k +
+    f M)``, ``f < F``, of every input (each experiment scaled to a largest
+    vector norm of 1: amplitudes do not matter); the rank of the ``P x F
+    n_u`` matrix of these vectors is taken at up to ``n_bins`` bins spread
+    over ``0 .. M/2`` (singular values below ``1e-6`` of the bin's largest
+    count as zero), and the median is returned over the bins whose largest
+    singular value is above ``1e-6`` of the largest of all and which have at
+    least ``P`` excited entries (at the others an input that does not excite
+    every band would make different experiments look dependent; the fit
+    reports those bins itself). None when no bin qualifies or an experiment
+    has no input at those bins.
+    """
+    M = N // F
+    K = M // 2 + 1
+    bins = np.unique(np.linspace(0, K - 1, min(K, n_bins)).round().astype(int))
+    fast = bins[:, None] + M * np.arange(F)[None, :]  # (bins, F)
+    mirrored = fast > N // 2  # the one-sided DFT holds their conjugates
+    source = np.where(mirrored, N - fast, fast)
+    vectors = np.empty((bins.size, len(experiments), n_inputs, F), dtype=complex)
+    for column, p in enumerate(experiments):
+        picked = np.asarray(spectrum_of(p))[:, source]  # (n_u, bins, F)
+        picked[:, mirrored] = picked[:, mirrored].conj()
+        vectors[:, column] = picked.transpose(1, 0, 2)
+    vectors = vectors.reshape(bins.size, len(experiments), n_inputs * F)
+    scale = np.max(np.linalg.norm(vectors, axis=2), axis=0)  # per experiment
+    if not np.all((scale > 0) & np.isfinite(scale)):
+        return None
+    vectors /= scale[None, :, None]
+    singular = np.linalg.svd(vectors, compute_uv=False)  # (bins, P), descending
+    largest = singular[:, 0]
+    # bins with input, and with at least P excited (band, input) entries: at
+    # the others even different experiments share a direction (an input
+    # without energy in some bands, which the fit reports per bin instead)
+    entries = np.linalg.norm(vectors, axis=1)  # (bins, F n_u)
+    excited_entries = np.sum(entries > 1e-6 * entries.max(axis=1, keepdims=True),
+                             axis=1)
+    usable = (largest > 1e-6 * largest.max()) & (excited_entries >= len(experiments))
+    if not np.any(usable):
+        return None
+    ranks = np.sum(singular > 1e-6 * largest[:, None], axis=1)[usable]
+    return int(np.median(ranks))
+
+
 @dataclass(frozen=True)
 class Records:
     """Fast inputs and slow outputs of one or several experiments, parsed once.
@@ -363,7 +411,7 @@ class Records:
             self.y_form == "2d" and self.n_outputs > 1
         )
 
-    def independent_experiments(self) -> int:
+    def independent_experiments(self, input_spectra=None) -> int:
         """How many experiments have linearly independent inputs.
 
         An experiment whose input record is a multiple or a linear combination
@@ -374,6 +422,23 @@ class Records:
         an eigenvalue of their Gram matrix below ``1e-12`` of the largest
         (a singular value below 1e-6) counts as dependence; all-zero records
         count for none. Records of any finite amplitude count alike.
+
+        The FRF's equations at a slow bin ``k`` see an experiment through its
+        aliased input vector (``U(k + f M)`` over the ``F`` bands and ``n_u``
+        inputs): an experiment whose vector is, at every bin, a combination
+        of the others' (with coefficients that may change from bin to bin)
+        adds no equation on the FRF either. The same excitation shifted by
+        whole slow samples (``F`` fast samples, e.g. one period of a periodic
+        excitation cut at another phase) is such a copy: its vector is the
+        original's times a phase. When there are at most ``F n_u``
+        experiments (more always combine at a bin), the count is therefore
+        also the rank of those vectors at a typical bin (the median over up
+        to 256 spread bins with input in at least ``P`` of the band-input
+        entries, singular values below ``1e-6`` of the bin's largest counting
+        as dependence; an input that misses bands is left to the fit's
+        per-bin check), computed from one DFT of
+        each record (``input_spectra``, the one-sided DFTs of ``u``
+        ``(P, n_u, N//2+1)``, if the caller has them: any common scale).
         """
         if self.n_experiments == 1:  # (an all-zero record: rank-deficient bins)
             return 1
@@ -395,7 +460,19 @@ class Records:
         if gram.shape[0] <= 1:
             return gram.shape[0]
         eigenvalues = np.linalg.eigvalsh(gram)
-        return int(np.sum(eigenvalues > 1e-12 * eigenvalues[-1]))
+        count = int(np.sum(eigenvalues > 1e-12 * eigenvalues[-1]))
+        if gram.shape[0] > self.F * self.n_inputs:
+            return count
+        N = self.n_samples
+        if input_spectra is None:
+            def spectrum_of(p):  # one experiment at a time, scaled rows
+                return np.fft.rfft(rows[p].reshape(self.n_inputs, N), axis=-1)
+        else:
+            def spectrum_of(p):
+                return input_spectra[p]
+        rank = _aliased_rank(spectrum_of, np.flatnonzero(excited), self.n_inputs,
+                             N, self.F)
+        return count if rank is None else min(count, rank)
 
     def hint(self) -> str:
         """:data:`SEVERAL_EXPERIMENTS_HINT` when a 2-D array with several rows
@@ -592,8 +669,9 @@ def check_local_degrees(
             raise ValueError(
                 f"The inputs of the {P} experiments are linearly dependent: only "
                 f"{independent} of them {'is' if independent == 1 else 'are'} "
-                "independent (an experiment repeats, "
-                "scales or combines the others' input), and a dependent "
+                "independent (an experiment repeats, scales or combines the "
+                "others' input, or shifts it by whole slow samples, or its "
+                "input is zero), and a dependent "
                 "experiment, with its own transient, adds no equation on the "
                 "FRF. "
                 + (_too_few_equations_message(

@@ -195,8 +195,8 @@ def two_by_two_stage(stage, *, loop: str = "closed",
         :func:`lrmfrf.plants.random_stage`; with ``sizing="siso"`` up to 7
         times, as its stronger modes need it more often: 9 of the 20
         stages of seeds 1000-1009 and 2000-2009, one to three times, against
-        one, seed 1002 once, with the plate's sizes). Before stop 32 only
-        stability was checked, which let 5 of those 20 SISO-sized stages
+        one, seed 1002 once, with the plate's sizes). Only stability was checked
+        before the margin check, which let 5 of those 20 SISO-sized stages
         (1007, 2001-2004) through with 18-27 deg or a gain margin of
         1.6-2.0. Open: suspended, no controller.
     downsampling_factor : int, optional

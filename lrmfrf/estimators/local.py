@@ -169,12 +169,6 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         P, n_u, N = records.u.shape
         n_y, M = records.n_outputs, records.n_slow
         local_degrees, names = self._local_degrees(params)
-        degrees = check_local_degrees(
-            **local_degrees, F=F, n_slow=M, n_experiments=P,
-            parameter_names=names, n_inputs=n_u, hint=records.hint(),
-            n_independent=records.independent_experiments(),
-        )
-        layout = LocalModelLayout(F=F, n_experiments=P, n_inputs=n_u, **degrees)
         # The FRF is a ratio: fit on records normalised by powers of two
         # (exact; none for ordinary data) and undo it on the results.
         u, y = records.u, records.y  # new arrays: check_records copies
@@ -182,6 +176,14 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         y_exponent = _normalise_in_place(y)
         # real records: one-sided DFTs (half the memory, the same values)
         spectra = OneSidedSpectra.from_records(u, y, F)
+        # the degrees after the DFTs: the count of independent experiments
+        # reads the input spectra (no second DFT)
+        degrees = check_local_degrees(
+            **local_degrees, F=F, n_slow=M, n_experiments=P,
+            parameter_names=names, n_inputs=n_u, hint=records.hint(),
+            n_independent=records.independent_experiments(spectra.inputs),
+        )
+        layout = LocalModelLayout(F=F, n_experiments=P, n_inputs=n_u, **degrees)
         del u, y, records
         self._reset_refinement()
         refines = self._refines(params)
