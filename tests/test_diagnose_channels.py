@@ -199,6 +199,11 @@ def test_a_delay_that_is_not_one_per_input_or_not_a_delay_is_refused():
     assert plant.with_(delay=[0.0, T]).delay == (0.0, T)
     siso = ContinuousPlant(A, B[:, :1], C[:1], D[:1, :1], (0.3 * T,))
     assert siso.delay == (0.3 * T,)
+    # one value for all inputs is a float, whatever it came as (a 0-d array
+    # stayed an array: printed as array(0.0005), not a float)
+    for value in (np.array(T), np.float32(T), 1):
+        delay = ContinuousPlant(A, B, C, D, value).delay
+        assert type(delay) is float and delay == float(value)
 
 
 def test_one_candidate_per_channel_and_none_for_siso(stage):

@@ -70,6 +70,8 @@ class ContinuousPlant:
                     f"{self.n_inputs} input(s): pass one delay for all inputs or "
                     f"one delay per input: {self.n_inputs} values.")
             object.__setattr__(self, "delay", tuple(float(d) for d in delays))
+        else:  # a numpy scalar or 0-d array: a float, as documented
+            object.__setattr__(self, "delay", float(delays))
         if not np.all(np.isfinite(delays)):
             raise ValueError(f"`delay` must be finite seconds; got {self.delay!r}.")
         if np.any(delays < 0):

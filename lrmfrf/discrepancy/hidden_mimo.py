@@ -269,7 +269,8 @@ def two_by_two_stage(stage, *, loop: str = "closed",
                                  controller, None, sizing)
         bandwidth /= 2
     raise RuntimeError("no stable diagonal lead-PID loop with 30 deg phase margin "
-                       "per loop for this 2x2 stage.")
+                       "and a gain margin of 2 per loop (the other loop closed) "
+                       "for this 2x2 stage.")
 
 
 #: Ranges of an asymmetric stage (:func:`_draw_asymmetry`).
@@ -386,8 +387,9 @@ def _asymmetric_stage(stage, loop: str, downsampling_factor, sizing: str,
             return dataclasses.replace(base, controller=controller, suspension=None,
                                        asymmetry=info)
         bandwidths = [b / 2 for b in bandwidths]
-    raise RuntimeError("no stable lead-PID loop with 30 deg phase margin per loop "
-                       "for this asymmetric 2x2 stage.")
+    raise RuntimeError("no stable lead-PID loop with 30 deg phase margin and a "
+                       "gain margin of 2 per loop (the other loop closed) for "
+                       "this asymmetric 2x2 stage.")
 
 
 def _loops_acceptable(plant, parts, *, min_phase_margin: float = 30.0,
