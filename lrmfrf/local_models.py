@@ -52,7 +52,9 @@ __all__ = [
     "iter_local_fit_rows",
     "fast_grid_targets",
     "default_chunk_size",
+    "experiments_needed",
     "half_slow_bins",
+    "nearly_dependent_windows",
     "normalise_spectra",
     "one_sided_fast_grid",
     "power_of_two_exponent",
@@ -654,6 +656,151 @@ def _energy_series(U: np.ndarray, n_slow: int, bins: np.ndarray, layout):
         series = U[:, lo : lo + width]
         out[b] = np.sum(series.real**2 + series.imag**2, axis=0)
     return out
+
+
+#: Near dependence of the experiments (``docs/method.md`` section 4): in a
+#: window whose local problem needs several experiments, an eigenvalue of the
+#: experiments' input Gram matrix (see :func:`nearly_dependent_windows`) below
+#: this fraction of the largest counts as a dependent experiment. For two
+#: experiments that is an input differing from a multiple of the other's by
+#: less than about ``2 sqrt(NEAR_DEPENDENCE_TOL)`` (2 %) of its amplitude in the
+#: window. On a 3x2 block of ``random_stage(3, mimo=True)`` (F = 3, P = 2, the
+#: second input the first plus ``eps`` times white noise, 3 inputs x 10 noise
+#: runs) the default std was 0.53-0.87x the RMS error for ``eps = 1e-3 ..
+#: 0.02`` at 40-80 dB, with a median error 2.9-36x that of independent inputs
+#: (at 60 dB 0.67-1.9 against 0.16); at ``eps = 0.03 .. 0.1``, not flagged,
+#: 0.81-0.92x and 1.9-4.3x (``benchmarks/near_dependent.py --snr``).
+NEAR_DEPENDENCE_TOL = 1e-4
+
+
+def experiments_needed(layout: LocalModelLayout) -> int:
+    """The fewest experiments with independent inputs for which a window
+    holds as many equations as parameters (``k (2n+1) >= (R_g+1) F n_u +
+    k (R_t+1) + R_e``); ``n_experiments + 1`` when no number does."""
+    spare = layout.window - (layout.transient_degree + 1)
+    fixed = layout.n_system + layout.den_degree
+    if spare <= 0:
+        return layout.n_experiments + 1
+    return max(1, -(-fixed // spare))
+
+
+def nearly_dependent_windows(spectra: OneSidedSpectra, layout: LocalModelLayout,
+                             tol: float = NEAR_DEPENDENCE_TOL):
+    """Windows whose experiments are too close to linearly dependent for
+    their local problem, or None when no window can be.
+
+    A window needs :func:`experiments_needed` experiments with independent
+    inputs; exactly dependent ones are refused before the fit
+    (:meth:`lrmfrf._validation.Records.independent_experiments`). Nearly
+    dependent ones (a repeated excitation measured with a noisy input
+    sensor) leave the local problem ill-conditioned: its FRF is dominated by
+    the noise, and biased by it, far beyond its linearised std. This counts,
+    per window ``k``, the eigenvalues above ``tol`` times the largest of the
+    experiments' Gram matrix ``C_pq = sum_{i,f,r} U_{p,i}(k+r+fM)
+    conj(U_{q,i}(k+r+fM)) / E_{i,b}`` with each experiment scaled to unit
+    energy in the window, and flags the windows where that count is below
+    the number needed. ``E_{i,b}`` is the energy of input ``i`` over the
+    experiments in the block ``b`` of ``M`` one-sided fast bins that the bin
+    lies in (its aliased band or the band's mirror): the units of the inputs
+    and the overall levels of their bands do not matter, as they do not for
+    the local problem.
+
+    Nothing is computed (None) with one experiment or when one experiment
+    gives a window enough equations (SISO and LPM at the default settings):
+    near dependence then only averages the noise. Otherwise the cost is a
+    few passes over the one-sided input spectra (about 4 ms for 2 x 2, P = 2,
+    N = 1.2e5, 0.2-0.4 % of the fit) and a Gershgorin bound per window; the
+    eigenvalues are computed only at windows the bound does not clear.
+
+    Parameters
+    ----------
+    spectra : OneSidedSpectra
+    layout : LocalModelLayout
+    tol : float, default=NEAR_DEPENDENCE_TOL
+
+    Returns
+    -------
+    ndarray of shape (M//2+1,), bool, or None
+        True at the windows (slow bins ``0..M//2``) to mark invalid. Windows
+        with no input energy at all are left to the excitation test.
+    """
+    P = layout.n_experiments
+    need = experiments_needed(layout)
+    if P == 1 or need <= 1 or need > P:
+        return None
+    N, F = spectra.n_samples, spectra.F
+    M = N // F
+    B = M // 2 + 1
+    n, L = layout.half_window, layout.window
+    U = spectra.inputs  # (P, n_u, N//2+1)
+    n_u, H = U.shape[1], U.shape[2]
+    # each input's bins in aliased band f (k // M) weighted by that band's
+    # energy over the experiments: the units of the inputs and the levels of
+    # their bands do not matter (the local problem is invariant to them)
+    weighted = np.empty_like(U)
+    for i in range(n_u):
+        for lo in range(0, H, M):
+            part = U[:, i, lo : lo + M]
+            # (einsum, not BLAS: no threads)
+            energy = (np.einsum("ph,ph->", part.real, part.real)
+                      + np.einsum("ph,ph->", part.imag, part.imag))
+            np.multiply(part, 1.0 / np.sqrt(energy) if energy > 0 else 0.0,
+                        out=weighted[:, i, lo : lo + M])
+    pairs = [(p, q) for p in range(P) for q in range(p, P)]
+    series = np.empty((len(pairs), H), dtype=complex)  # sum_i of weighted U_p conj(U_q)
+    for s, (p, q) in enumerate(pairs):
+        if p == q:  # real: |U_p|^2 from the real and imaginary parts (views)
+            series[s].imag = 0.0
+            np.einsum("ih,ih->h", weighted[p].real, weighted[p].real,
+                      out=series[s].real)
+            series[s].real += np.einsum("ih,ih->h", weighted[p].imag,
+                                        weighted[p].imag)
+        else:
+            np.einsum("ih,ih->h", weighted[p], weighted[q].conj(), out=series[s])
+    # per slow bin j: the sum over the F aliased bands j + fM of the full DFT
+    # (bins above N//2 are the conjugate mirrors of bins N - k)
+    per_bin = np.zeros((len(pairs), M), dtype=complex)
+    for f in range(F):
+        lo, hi = f * M, (f + 1) * M  # fast bins lo..hi-1
+        direct = min(hi, H)
+        if direct > lo:
+            per_bin[:, : direct - lo] += series[:, lo:direct]
+        first = max(lo, H)  # mirrored bins first..hi-1
+        if hi > first:
+            per_bin[:, first - lo :] += np.conj(
+                series[:, N - hi + 1 : N - first + 1][:, ::-1])
+    # window sums over slow bins k-n..k+n (mod M), windows k = 0..M//2
+    ext = per_bin[:, np.arange(-n, B + n) % M]
+    total = np.zeros((len(pairs), ext.shape[1] + 1), dtype=complex)
+    np.cumsum(ext, axis=1, out=total[:, 1:])
+    sums = total[:, L:] - total[:, :-L]  # (pairs, B)
+    # normalised to unit energy per experiment and window (1-D arrays over
+    # the windows: the P x P matrices are built only where the bound fails)
+    index = {pair: s for s, pair in enumerate(pairs)}
+    diag = np.stack([sums[index[p, p]].real for p in range(P)])  # (P, B)
+    present = diag > 1e-12 * diag.max(axis=0)
+    norm = np.zeros_like(diag)
+    np.divide(1.0, np.sqrt(np.abs(diag)), out=norm, where=present)
+    # Gershgorin: every eigenvalue within 1 +- the largest off-diagonal row sum
+    rows = np.zeros((P, B))
+    for (p, q), s in index.items():
+        if p != q:
+            size = np.abs(sums[s]) * norm[p] * norm[q]
+            rows[p] += size
+            rows[q] += size
+    radius = rows.max(axis=0)
+    clear = present.all(axis=0) & (1 - radius > tol * (1 + radius))
+    flagged = np.zeros(B, dtype=bool)
+    check = np.flatnonzero(~clear & present.any(axis=0))
+    if check.size:
+        gram = np.empty((check.size, P, P), dtype=complex)
+        for (p, q), s in index.items():
+            gram[:, p, q] = sums[s, check] * norm[p, check] * norm[q, check]
+            gram[:, q, p] = np.conj(gram[:, p, q])
+        eig = np.linalg.eigvalsh(gram)  # ascending
+        count = np.sum(eig > tol * eig[:, -1:], axis=1)
+        flagged[check] = count < need
+    return flagged
 
 
 @dataclass(frozen=True)
