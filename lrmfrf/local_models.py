@@ -685,7 +685,8 @@ def experiments_needed(layout: LocalModelLayout) -> int:
 
 
 def nearly_dependent_windows(spectra: OneSidedSpectra, layout: LocalModelLayout,
-                             tol: float = NEAR_DEPENDENCE_TOL):
+                             tol: float = NEAR_DEPENDENCE_TOL, *,
+                             chunk_size: int | None = None):
     """Windows whose experiments are too close to linearly dependent for
     their local problem, or None when no window can be.
 
@@ -717,6 +718,10 @@ def nearly_dependent_windows(spectra: OneSidedSpectra, layout: LocalModelLayout,
     spectra : OneSidedSpectra
     layout : LocalModelLayout
     tol : float, default=NEAR_DEPENDENCE_TOL
+    chunk_size : int, optional
+        Windows computed at once; the default holds about 16 MiB of input
+        values (all windows of ordinary records). The result does not
+        depend on it.
 
     Returns
     -------
@@ -733,47 +738,66 @@ def nearly_dependent_windows(spectra: OneSidedSpectra, layout: LocalModelLayout,
     B = M // 2 + 1
     n, L = layout.half_window, layout.window
     U = spectra.inputs  # (P, n_u, N//2+1)
-    n_u, H = U.shape[1], U.shape[2]
-    # each input's bins in aliased band f (k // M) weighted by that band's
-    # energy over the experiments: the units of the inputs and the levels of
-    # their bands do not matter (the local problem is invariant to them)
-    weighted = np.empty_like(U)
-    for i in range(n_u):
-        for lo in range(0, H, M):
-            part = U[:, i, lo : lo + M]
-            # (einsum, not BLAS: no threads)
-            energy = (np.einsum("ph,ph->", part.real, part.real)
-                      + np.einsum("ph,ph->", part.imag, part.imag))
-            np.multiply(part, 1.0 / np.sqrt(energy) if energy > 0 else 0.0,
-                        out=weighted[:, i, lo : lo + M])
+    n_u = U.shape[1]
+    # input i's values in aliased band f scaled by that band's energy over the
+    # experiments: the units of the inputs and the levels of their bands do
+    # not matter (the local problem is invariant to them)
+    scale = np.sqrt(_inverse_band_energy(U, N, F))[:, :, None]  # (n_u, F, 1)
     pairs = [(p, q) for p in range(P) for q in range(p, P)]
-    series = np.empty((len(pairs), H), dtype=complex)  # sum_i of weighted U_p conj(U_q)
-    for s, (p, q) in enumerate(pairs):
-        if p == q:  # real: |U_p|^2 from the real and imaginary parts (views)
-            series[s].imag = 0.0
-            np.einsum("ih,ih->h", weighted[p].real, weighted[p].real,
-                      out=series[s].real)
-            series[s].real += np.einsum("ih,ih->h", weighted[p].imag,
-                                        weighted[p].imag)
-        else:
-            np.einsum("ih,ih->h", weighted[p], weighted[q].conj(), out=series[s])
-    # per slow bin j: the sum over the F aliased bands j + fM of the full DFT
-    # (bins above N//2 are the conjugate mirrors of bins N - k)
-    per_bin = np.zeros((len(pairs), M), dtype=complex)
-    for f in range(F):
-        lo, hi = f * M, (f + 1) * M  # fast bins lo..hi-1
-        direct = min(hi, H)
-        if direct > lo:
-            per_bin[:, : direct - lo] += series[:, lo:direct]
-        first = max(lo, H)  # mirrored bins first..hi-1
-        if hi > first:
-            per_bin[:, first - lo :] += np.conj(
-                series[:, N - hi + 1 : N - first + 1][:, ::-1])
-    # window sums over slow bins k-n..k+n (mod M), windows k = 0..M//2
-    ext = per_bin[:, np.arange(-n, B + n) % M]
-    total = np.zeros((len(pairs), ext.shape[1] + 1), dtype=complex)
-    np.cumsum(ext, axis=1, out=total[:, 1:])
-    sums = total[:, L:] - total[:, :-L]  # (pairs, B)
+    flagged = np.zeros(B, dtype=bool)
+    # windows in chunks: about 2**20 values (16 MiB) of the inputs at a time
+    size = chunk_size or max(256, 2**20 // (P * n_u * F))
+    for start in range(0, B, size):
+        stop = min(B, start + size)
+        lo, hi = start - n, stop + n  # the slow bins the windows read
+        values = np.empty((P, n_u, F, hi - lo), dtype=complex)
+        for f in range(F):  # fast bins lo + fM .. hi - 1 + fM (mod N)
+            _periodic_range(U, lo + f * M, hi + f * M, N, values[:, :, f])
+        values *= scale
+        # per slow bin, the sums over inputs and bands of U_p conj(U_q)
+        per_bin = np.empty((len(pairs), hi - lo), dtype=complex)
+        for s, (p, q) in enumerate(pairs):
+            if p == q:  # real: from the real and imaginary parts (views)
+                per_bin[s] = (np.einsum("ifw,ifw->w", values[p].real, values[p].real)
+                              + np.einsum("ifw,ifw->w", values[p].imag,
+                                          values[p].imag))
+            else:
+                np.einsum("ifw,ifw->w", values[p], values[q].conj(), out=per_bin[s])
+        del values
+        total = np.zeros((len(pairs), hi - lo + 1), dtype=complex)
+        np.cumsum(per_bin, axis=1, out=total[:, 1:])
+        sums = total[:, L:] - total[:, :-L]  # (pairs, stop - start)
+        flagged[start:stop] = _dependent_windows(sums, pairs, P, need, tol)
+    return flagged
+
+
+def _inverse_band_energy(U, N, F):
+    """``1 / sum_{p,j} |U_{p,i}(j + fM)|^2`` over the full DFT's aliased band
+    ``f`` (0 for a band without energy), from the one-sided spectra ``U``
+    (P, n_u, N//2+1): shape (n_u, F)."""
+    M, H = N // F, U.shape[-1]
+    energy = np.zeros((U.shape[1], F))
+    for i in range(U.shape[1]):
+        for f in range(F):
+            # band f: the bins k = fM .. (f+1)M - 1, k <= N//2 directly and
+            # the others as the mirrors N - k of one-sided bins
+            ranges = [(f * M, min((f + 1) * M, H)),
+                      (max(N - (f + 1) * M + 1, 1), min(N - f * M, N - H) + 1)]
+            for a, b in ranges:
+                if b > a:
+                    part = U[:, i, a:b]
+                    energy[i, f] += (np.einsum("ph,ph->", part.real, part.real)
+                                     + np.einsum("ph,ph->", part.imag, part.imag))
+    inverse = np.zeros_like(energy)
+    np.divide(1.0, energy, out=inverse, where=energy > 0)
+    return inverse
+
+
+def _dependent_windows(sums, pairs, P, need, tol):
+    """From the window sums of the scaled ``U_p conj(U_q)`` (one row per pair
+    of ``pairs``): the windows with fewer than ``need`` eigenvalues of the
+    experiments' normalised Gram matrix above ``tol`` times the largest."""
+    B = sums.shape[1]
     # normalised to unit energy per experiment and window (1-D arrays over
     # the windows: the P x P matrices are built only where the bound fails)
     index = {pair: s for s, pair in enumerate(pairs)}
