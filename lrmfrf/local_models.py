@@ -698,20 +698,22 @@ def nearly_dependent_windows(spectra: OneSidedSpectra, layout: LocalModelLayout,
     the noise, and biased by it, far beyond its linearised std. This counts,
     per window ``k``, the eigenvalues above ``tol`` times the largest of the
     experiments' Gram matrix ``C_pq = sum_{i,f,r} U_{p,i}(k+r+fM)
-    conj(U_{q,i}(k+r+fM)) / E_{i,b}`` with each experiment scaled to unit
+    conj(U_{q,i}(k+r+fM)) / E_{i,f}`` with each experiment scaled to unit
     energy in the window, and flags the windows where that count is below
-    the number needed. ``E_{i,b}`` is the energy of input ``i`` over the
-    experiments in the block ``b`` of ``M`` one-sided fast bins that the bin
-    lies in (its aliased band or the band's mirror): the units of the inputs
-    and the overall levels of their bands do not matter, as they do not for
-    the local problem.
+    the number needed. ``E_{i,f}`` is the energy of input ``i`` over the
+    experiments in aliased band ``f`` of the whole record: the units of the
+    inputs and the overall levels of their bands do not matter, as they do
+    not for the local problem. For two experiments the count is below two
+    when the inputs differ from a multiple of each other by less than about
+    ``2 sqrt(tol)`` of their amplitude in the window.
 
     Nothing is computed (None) with one experiment or when one experiment
     gives a window enough equations (SISO and LPM at the default settings):
     near dependence then only averages the noise. Otherwise the cost is a
-    few passes over the one-sided input spectra (about 4 ms for 2 x 2, P = 2,
-    N = 1.2e5, 0.2-0.4 % of the fit) and a Gershgorin bound per window; the
-    eigenvalues are computed only at windows the bound does not clear.
+    few passes over the input spectra, windows in chunks of bounded memory
+    (3.0-3.8 ms for 2 x 2, P = 2, N = 1.2e5, about 0.4 % of the fit), and a
+    Gershgorin bound per window; the eigenvalues are computed only at
+    windows the bound does not clear.
 
     Parameters
     ----------
