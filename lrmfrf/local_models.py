@@ -52,7 +52,9 @@ __all__ = [
     "iter_local_fit_rows",
     "fast_grid_targets",
     "default_chunk_size",
+    "experiments_needed",
     "half_slow_bins",
+    "nearly_dependent_windows",
     "normalise_spectra",
     "one_sided_fast_grid",
     "power_of_two_exponent",
@@ -654,6 +656,177 @@ def _energy_series(U: np.ndarray, n_slow: int, bins: np.ndarray, layout):
         series = U[:, lo : lo + width]
         out[b] = np.sum(series.real**2 + series.imag**2, axis=0)
     return out
+
+
+#: Near dependence of the experiments (``docs/method.md`` section 4): in a
+#: window whose local problem needs several experiments, an eigenvalue of the
+#: experiments' input Gram matrix (see :func:`nearly_dependent_windows`) below
+#: this fraction of the largest counts as a dependent experiment. For two
+#: experiments that is an input differing from a multiple of the other's by
+#: less than about ``2 sqrt(NEAR_DEPENDENCE_TOL)`` (2 %) of its amplitude in the
+#: window. On a 3x2 block of ``random_stage(3, mimo=True)`` (F = 3, P = 2, the
+#: second input the first plus ``eps`` times white noise, 3 inputs x 10 noise
+#: runs) the default std was 0.53-0.87x the RMS error for ``eps = 1e-3 ..
+#: 0.02`` at 40-80 dB, with a median error 2.9-36x that of independent inputs
+#: (at 60 dB 0.67-1.9 against 0.16); at ``eps = 0.03 .. 0.1``, not flagged,
+#: 0.81-0.92x and 1.9-4.3x (``benchmarks/near_dependent.py --snr``).
+NEAR_DEPENDENCE_TOL = 1e-4
+
+
+def experiments_needed(layout: LocalModelLayout) -> int:
+    """The fewest experiments with independent inputs for which a window
+    holds as many equations as parameters (``k (2n+1) >= (R_g+1) F n_u +
+    k (R_t+1) + R_e``); ``n_experiments + 1`` when no number does."""
+    spare = layout.window - (layout.transient_degree + 1)
+    fixed = layout.n_system + layout.den_degree
+    if spare <= 0:
+        return layout.n_experiments + 1
+    return max(1, -(-fixed // spare))
+
+
+def nearly_dependent_windows(spectra: OneSidedSpectra, layout: LocalModelLayout,
+                             tol: float = NEAR_DEPENDENCE_TOL, *,
+                             chunk_size: int | None = None):
+    """Windows whose experiments are too close to linearly dependent for
+    their local problem, or None when no window can be.
+
+    A window needs :func:`experiments_needed` experiments with independent
+    inputs; exactly dependent ones are refused before the fit
+    (:meth:`lrmfrf._validation.Records.independent_experiments`). Nearly
+    dependent ones (a repeated excitation measured with a noisy input
+    sensor) leave the local problem ill-conditioned: its FRF is dominated by
+    the noise, and biased by it, far beyond its linearised std. This counts,
+    per window ``k``, the eigenvalues above ``tol`` times the largest of the
+    experiments' Gram matrix ``C_pq = sum_{i,f,r} U_{p,i}(k+r+fM)
+    conj(U_{q,i}(k+r+fM)) / E_{i,f}`` with each experiment scaled to unit
+    energy in the window, and flags the windows where that count is below
+    the number needed. ``E_{i,f}`` is the energy of input ``i`` over the
+    experiments in aliased band ``f`` of the whole record: the units of the
+    inputs and the overall levels of their bands do not matter, as they do
+    not for the local problem. For two experiments the count is below two
+    when the inputs differ from a multiple of each other by less than about
+    ``2 sqrt(tol)`` of their amplitude in the window.
+
+    Nothing is computed (None) with one experiment or when one experiment
+    gives a window enough equations (SISO and LPM at the default settings):
+    near dependence then only averages the noise. Otherwise the cost is a
+    few passes over the input spectra, windows in chunks of bounded memory
+    (3.0-3.8 ms for 2 x 2, P = 2, N = 1.2e5, about 0.4 % of the fit), and a
+    Gershgorin bound per window; the eigenvalues are computed only at
+    windows the bound does not clear.
+
+    Parameters
+    ----------
+    spectra : OneSidedSpectra
+    layout : LocalModelLayout
+    tol : float, default=NEAR_DEPENDENCE_TOL
+    chunk_size : int, optional
+        Windows computed at once; the default holds about 16 MiB of input
+        values (all windows of ordinary records). The result does not
+        depend on it.
+
+    Returns
+    -------
+    ndarray of shape (M//2+1,), bool, or None
+        True at the windows (slow bins ``0..M//2``) to mark invalid. Windows
+        with no input energy at all are left to the excitation test.
+    """
+    P = layout.n_experiments
+    need = experiments_needed(layout)
+    if P == 1 or need <= 1 or need > P:
+        return None
+    N, F = spectra.n_samples, spectra.F
+    M = N // F
+    B = M // 2 + 1
+    n, L = layout.half_window, layout.window
+    U = spectra.inputs  # (P, n_u, N//2+1)
+    n_u = U.shape[1]
+    # input i's values in aliased band f scaled by that band's energy over the
+    # experiments: the units of the inputs and the levels of their bands do
+    # not matter (the local problem is invariant to them)
+    scale = np.sqrt(_inverse_band_energy(U, N, F))[:, :, None]  # (n_u, F, 1)
+    pairs = [(p, q) for p in range(P) for q in range(p, P)]
+    flagged = np.zeros(B, dtype=bool)
+    # windows in chunks: about 2**20 values (16 MiB) of the inputs at a time
+    size = chunk_size or max(256, 2**20 // (P * n_u * F))
+    for start in range(0, B, size):
+        stop = min(B, start + size)
+        lo, hi = start - n, stop + n  # the slow bins the windows read
+        values = np.empty((P, n_u, F, hi - lo), dtype=complex)
+        for f in range(F):  # fast bins lo + fM .. hi - 1 + fM (mod N)
+            _periodic_range(U, lo + f * M, hi + f * M, N, values[:, :, f])
+        values *= scale
+        # per slow bin, the sums over inputs and bands of U_p conj(U_q)
+        per_bin = np.empty((len(pairs), hi - lo), dtype=complex)
+        for s, (p, q) in enumerate(pairs):
+            if p == q:  # real: from the real and imaginary parts (views)
+                per_bin[s] = (np.einsum("ifw,ifw->w", values[p].real, values[p].real)
+                              + np.einsum("ifw,ifw->w", values[p].imag,
+                                          values[p].imag))
+            else:
+                np.einsum("ifw,ifw->w", values[p], values[q].conj(), out=per_bin[s])
+        del values
+        total = np.zeros((len(pairs), hi - lo + 1), dtype=complex)
+        np.cumsum(per_bin, axis=1, out=total[:, 1:])
+        sums = total[:, L:] - total[:, :-L]  # (pairs, stop - start)
+        flagged[start:stop] = _dependent_windows(sums, pairs, P, need, tol)
+    return flagged
+
+
+def _inverse_band_energy(U, N, F):
+    """``1 / sum_{p,j} |U_{p,i}(j + fM)|^2`` over the full DFT's aliased band
+    ``f`` (0 for a band without energy), from the one-sided spectra ``U``
+    (P, n_u, N//2+1): shape (n_u, F)."""
+    M, H = N // F, U.shape[-1]
+    energy = np.zeros((U.shape[1], F))
+    for i in range(U.shape[1]):
+        for f in range(F):
+            # band f: the bins k = fM .. (f+1)M - 1, k <= N//2 directly and
+            # the others as the mirrors N - k of one-sided bins
+            ranges = [(f * M, min((f + 1) * M, H)),
+                      (max(N - (f + 1) * M + 1, 1), min(N - f * M, N - H) + 1)]
+            for a, b in ranges:
+                if b > a:
+                    part = U[:, i, a:b]
+                    energy[i, f] += (np.einsum("ph,ph->", part.real, part.real)
+                                     + np.einsum("ph,ph->", part.imag, part.imag))
+    inverse = np.zeros_like(energy)
+    np.divide(1.0, energy, out=inverse, where=energy > 0)
+    return inverse
+
+
+def _dependent_windows(sums, pairs, P, need, tol):
+    """From the window sums of the scaled ``U_p conj(U_q)`` (one row per pair
+    of ``pairs``): the windows with fewer than ``need`` eigenvalues of the
+    experiments' normalised Gram matrix above ``tol`` times the largest."""
+    B = sums.shape[1]
+    # normalised to unit energy per experiment and window (1-D arrays over
+    # the windows: the P x P matrices are built only where the bound fails)
+    index = {pair: s for s, pair in enumerate(pairs)}
+    diag = np.stack([sums[index[p, p]].real for p in range(P)])  # (P, B)
+    present = diag > 1e-12 * diag.max(axis=0)
+    norm = np.zeros_like(diag)
+    np.divide(1.0, np.sqrt(np.abs(diag)), out=norm, where=present)
+    # Gershgorin: every eigenvalue within 1 +- the largest off-diagonal row sum
+    rows = np.zeros((P, B))
+    for (p, q), s in index.items():
+        if p != q:
+            size = np.abs(sums[s]) * norm[p] * norm[q]
+            rows[p] += size
+            rows[q] += size
+    radius = rows.max(axis=0)
+    clear = present.all(axis=0) & (1 - radius > tol * (1 + radius))
+    flagged = np.zeros(B, dtype=bool)
+    check = np.flatnonzero(~clear & present.any(axis=0))
+    if check.size:
+        gram = np.empty((check.size, P, P), dtype=complex)
+        for (p, q), s in index.items():
+            gram[:, p, q] = sums[s, check] * norm[p, check] * norm[q, check]
+            gram[:, q, p] = np.conj(gram[:, p, q])
+        eig = np.linalg.eigvalsh(gram)  # ascending
+        count = np.sum(eig > tol * eig[:, -1:], axis=1)
+        flagged[check] = count < need
+    return flagged
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 
 import numpy as np
@@ -24,11 +24,15 @@ from .._validation import (
 )
 from ..exceptions import IdentifiabilityWarning
 from ..local_models import (
+    NEAR_DEPENDENCE_TOL,
     OneSidedSpectra,
     _fast_grid_runs,
     _joined_fits,
+    experiments_needed,
     fit_local_models,
     half_slow_bins,
+    nearly_dependent_windows,
+    one_sided_fast_grid,
     rescale_local_fit,
     scale_by_power_of_two,
 )
@@ -147,7 +151,12 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         IdentifiabilityWarning
             Once, when some local problems are rank-deficient (an input that
             does not excite every aliased band): those bins are NaN with
-            ``valid_ == False``.
+            ``valid_ == False``. Once more when the windows need several
+            experiments and in some of them the experiments' inputs are
+            nearly linearly dependent (differ by less than about 2 %, e.g. one
+            excitation repeated with a noisy input sensor): those bins are NaN
+            with ``valid_ == False`` too
+            (:func:`lrmfrf.local_models.nearly_dependent_windows`).
 
         Notes
         -----
@@ -185,6 +194,11 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         )
         layout = LocalModelLayout(F=F, n_experiments=P, n_inputs=n_u, **degrees)
         del u, y, records
+        # windows whose experiments are nearly dependent (None: none can be,
+        # e.g. one experiment or a window that one experiment fills)
+        near = nearly_dependent_windows(spectra, layout)
+        if near is not None and not near.any():
+            near = None
         self._reset_refinement()
         refines = self._refines(params)
         std_method = params.get("std_method", "lemma2")
@@ -227,7 +241,7 @@ class _LocalModelEstimator(_BaseFRFEstimator):
             )
         try:
             self._set_fitted(chunks, layout, N, M, F, P, n_y, sample_time,
-                             u_exponent, y_exponent)
+                             u_exponent, y_exponent, near)
         finally:
             if not whole:
                 # the generator holds a single-threaded-BLAS section while
@@ -235,17 +249,20 @@ class _LocalModelEstimator(_BaseFRFEstimator):
                 # keep it, and BLAS on one thread, as long as its traceback
                 chunks.close()
         if whole:
-            fits = [rescale_local_fit(fit, u_exponent, y_exponent) for fit in fits]
+            fits = [rescale_local_fit(_invalidated(fit, near), u_exponent,
+                                      y_exponent) for fit in fits]
             self.local_fit_ = fits[0] if n_u == n_y == 1 else fits
         else:
             self._local_fit_cache_ = None
             self._local_fit_source_ = _LocalFitSource(
-                spectra, layout, u_exponent, y_exponent, backend, std_method
+                spectra, layout, u_exponent, y_exponent, backend, std_method,
+                near,
             )
         return self
 
     def _set_fitted(
-        self, chunks, layout, N, M, F, P, n_y, sample_time, u_exponent, y_exponent
+        self, chunks, layout, N, M, F, P, n_y, sample_time, u_exponent, y_exponent,
+        near=None,
     ) -> None:
         """Set the fitted attributes from the local fits of each output row.
 
@@ -295,6 +312,9 @@ class _LocalModelEstimator(_BaseFRFEstimator):
                     "(lrmfrf.signals.orthogonal_multisines)."
                 )
             warnings.warn(msg, IdentifiabilityWarning, stacklevel=3)
+        if near is not None:
+            out.invalidate(near, N, F)
+            _warn_nearly_dependent(near, layout, M)
         if layout.dof == 0:
             warnings.warn(
                 "The local problems have zero residual degrees of freedom: the "
@@ -785,6 +805,63 @@ class _FittedArrays:
             fit.transient.T, y_exponent
         )
 
+    def invalidate(self, near, N, F) -> None:
+        """NaN and ``valid_ = False`` at the windows ``near`` (slow bins
+        ``0..M//2``) of every output row: the fast bins of their bands, and
+        their noise variance and transient."""
+        bands = np.repeat(near[:, None], F, axis=1)
+        fast = one_sided_fast_grid(bands, N, F, conj=False)
+        self.frf[..., fast] = np.nan
+        self.std[..., fast] = np.nan
+        self.cov[..., fast] = np.nan
+        self.valid[..., fast] = False
+        self.noise[:, near] = np.nan
+        self.transient[..., near] = np.nan
+
+
+def _invalidated(fit, near):
+    """``fit`` (a LocalModelFit of slow bins ``0..M//2``) with the windows
+    ``near`` not well posed and their values NaN, as a rank-deficient
+    window's; ``fit`` itself when ``near`` is None."""
+    if near is None:
+        return fit
+    fields = {"well_posed": fit.well_posed & ~near}
+    for name in ("theta", "system", "system_var", "transient", "noise_var",
+                 "rss", "system_cov"):
+        values = getattr(fit, name)
+        if values is not None:
+            values = values.copy()
+            values[near] = np.nan
+            fields[name] = values
+    return replace(fit, **fields)
+
+
+def _warn_nearly_dependent(near, layout, M) -> None:
+    """The :class:`IdentifiabilityWarning` of windows whose experiments are
+    nearly dependent (:func:`lrmfrf.local_models.nearly_dependent_windows`)."""
+    P, need = layout.n_experiments, experiments_needed(layout)
+    count = int(np.count_nonzero(near))
+    # the half window at which one experiment fills a window
+    wide = -(-(layout.n_system + layout.den_degree + layout.transient_degree) // 2)
+    fix = "Give the experiments clearly different inputs, e.g. " \
+          "lrmfrf.signals.orthogonal_multisines"
+    if 2 * wide + 1 <= M:
+        fix += f", or increase half_window to at least {wide} (one experiment " \
+               "then gives a window enough equations)"
+    warnings.warn(
+        f"{count} of {near.size} slow bins ({100 * count / near.size:.0f} %) have "
+        f"nearly linearly dependent experiments: in their windows the inputs of "
+        f"the {P} experiments differ from a linear combination of each other by "
+        f"less than about {200 * NEAR_DEPENDENCE_TOL ** 0.5:.0f} % (e.g. one "
+        "excitation repeated and measured with a "
+        f"noisy input sensor), and their local model ({layout.n_params} "
+        f"parameters, {layout.window} equations per experiment) needs {need} "
+        "independent experiments. Their FRF would be dominated and biased by the "
+        "noise far beyond its std: it is NaN and valid_ is False. " + fix + ".",
+        IdentifiabilityWarning,
+        stacklevel=4,
+    )
+
 
 def _conj_scale(values: np.ndarray, conj: bool, exponent: int) -> None:
     """``values`` conjugated (if ``conj``) and times ``2**exponent``, in
@@ -814,6 +891,7 @@ class _LocalFitSource:
     y_exponent: int
     backend: str
     std_method: str = "lemma2"
+    near: np.ndarray | None = None  # nearly dependent windows (invalid)
 
     def compute(self):
         """The fit's ``local_fit_``: a LocalModelFit, or a list per output row."""
@@ -827,8 +905,8 @@ class _LocalFitSource:
             for o, fit in enumerate(chunk):
                 rows[o].append(fit)
         fits = [
-            rescale_local_fit(_joined_fits(parts, bins), self.u_exponent,
-                              self.y_exponent)
+            rescale_local_fit(_invalidated(_joined_fits(parts, bins), self.near),
+                              self.u_exponent, self.y_exponent)
             for parts in rows
         ]
         return fits[0] if n_y == 1 and self.layout.n_inputs == 1 else fits

@@ -196,9 +196,13 @@ from .._validation import (
 )
 from ..local_models import (
     EXCITATION_TOL,
+    OneSidedSpectra,
     dft,
     fit_local_models,
     half_slow_bins,
+    nearly_dependent_windows,
+    power_of_two_exponent,
+    scale_by_power_of_two,
     window_excitation,
 )
 from ..progress import progress
@@ -402,6 +406,29 @@ def _pmse_ingredients(U, Y, layout, *, chunk_size=None, backend="auto"):
         variances.append(np.where(ok[:, None], fit.system_var, np.nan))
         oks.append(ok)
     return np.stack(systems), np.stack(variances), np.stack(oks)
+
+
+def _nearly_dependent_counts(u, F, layouts, todo) -> dict:
+    """Per candidate ``i`` of ``todo``, the windows whose experiments are
+    nearly dependent for its layout
+    (:func:`lrmfrf.local_models.nearly_dependent_windows`, which the refit
+    marks invalid); the input spectra are computed only when some candidate
+    needs several experiments."""
+    counts = dict.fromkeys(todo, 0)
+    spectra = None
+    for i in todo:
+        layout = layouts[i]
+        if layout.n_experiments == 1:
+            continue
+        if spectra is None:
+            # (normalised by a power of two, as the estimators' records)
+            u_n = scale_by_power_of_two(u, -power_of_two_exponent(u))
+            spectra = OneSidedSpectra(np.fft.rfft(u_n, axis=-1), None,
+                                      u.shape[-1], F)
+        near = nearly_dependent_windows(spectra, layout)
+        if near is not None:
+            counts[i] = int(np.count_nonzero(near))
+    return counts
 
 
 def _pmse_reference(layouts, n_invalid) -> int:
@@ -759,9 +786,12 @@ class _LocalModelCV(_BaseFRFEstimator):
             )
         value = np.full(len(candidates), np.inf)
         n_invalid = np.full(len(candidates), half_slow_bins(M).size * y.shape[1])
+        near = _nearly_dependent_counts(u, F, layouts, todo)
         for i, res in zip(todo, results, strict=True):
             value[i] = res.value
-            n_invalid[i] = res.n_invalid
+            # the windows the fit marks invalid for nearly dependent
+            # experiments count as invalid (each output row's)
+            n_invalid[i] = res.n_invalid + y.shape[1] * near[i]
         if not np.isfinite(value).any():
             raise ValueError(
                 f"No candidate of the grid is identifiable on these data: every "
