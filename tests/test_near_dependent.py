@@ -221,3 +221,33 @@ def test_the_check_counts_the_experiments_a_window_needs():
     noise = 1e-3 * rng.standard_normal(u1.shape)
     assert not check(np.stack([u1, u2, u1 + noise]), layout(3, 3)).any()
     assert check(np.stack([u1, u1 + noise, u1 - noise]), layout(3, 3)).all()
+
+
+@pytest.mark.parametrize("criterion", ["pmse", "aicc"])
+def test_selection_counts_a_window_invalid_once(plant, criterion):
+    """Inputs without energy above 0.8 x Nyquist leave some windows
+    rank-deficient; the second experiment nearly repeats the first (1e-3 of
+    the same band-limited kind), so every window is nearly dependent too.
+    The CV counted the rank-deficient windows twice (444 and 441 "invalid"
+    of the 303 windows of the 3 output rows here; 296 of 202 for a 2 x 2
+    block; measured in review), which can rank a candidate with more truly
+    invalid windows first; each counts once, as the refit marks them."""
+    rng = np.random.default_rng(8)
+    bins = np.arange(1, N // 2 + 1)
+    band = bins[bins < int(0.8 * N / 2)]
+
+    def inputs():
+        return np.stack([multisine(N, bins=band, rng=rng) for _ in range(2)])
+
+    u1 = inputs()
+    u = np.stack([u1, u1 + 1e-3 * inputs()])
+    y = _outputs(plant, u)
+    n_y = y.shape[1]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cv = LRMBeyondNyquistCV(half_windows=(18, 19), num_degrees=(4,),
+                                den_degrees=(7,), criterion=criterion).fit(u, y, F)
+        refit = LRMBeyondNyquist().fit(u, y, F)
+    invalid = sum(int(np.count_nonzero(~fit.well_posed)) for fit in refit.local_fit_)
+    assert invalid == n_y * 101
+    assert list(cv.cv_results_["n_invalid_bins"]) == [n_y * 101, n_y * 101]
