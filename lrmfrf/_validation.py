@@ -314,8 +314,11 @@ def _aliased_rank(spectrum_of, experiments, n_inputs: int, N: int, F: int,
     singular value is above ``1e-6`` of the largest of all and which have at
     least ``P`` excited entries (at the others an input that does not excite
     every band would make different experiments look dependent; the fit
-    reports those bins itself). None when no bin qualifies or an experiment
-    has no input at those bins.
+    reports those bins itself) and at which every experiment has input (above
+    ``1e-6`` of its largest vector norm: experiments that excite interleaved
+    bins, e.g. zippered multisines, share no bin and are independent over a
+    window). None when no bin qualifies or an experiment has no input at
+    all.
     """
     M = N // F
     K = M // 2 + 1
@@ -341,7 +344,12 @@ def _aliased_rank(spectrum_of, experiments, n_inputs: int, N: int, F: int,
     entries = np.linalg.norm(vectors, axis=1)  # (bins, F n_u)
     excited_entries = np.sum(entries > 1e-6 * entries.max(axis=1, keepdims=True),
                              axis=1)
-    usable = (largest > 1e-6 * largest.max()) & (excited_entries >= len(experiments))
+    # and at which every experiment has input: where one has none (inputs on
+    # interleaved bins, e.g. zippered multisines) the others' vectors say
+    # nothing of its dependence, and its windows see it independently
+    present = np.all(np.linalg.norm(vectors, axis=2) > 1e-6, axis=1)
+    usable = ((largest > 1e-6 * largest.max())
+              & (excited_entries >= len(experiments)) & present)
     if not np.any(usable):
         return None
     ranks = np.sum(singular > 1e-6 * largest[:, None], axis=1)[usable]
@@ -433,8 +441,8 @@ class Records:
         original's times a phase. When there are at most ``F n_u``
         experiments (more always combine at a bin), the count is therefore
         also the rank of those vectors at a typical bin (the median over up
-        to 256 spread bins with input in at least ``P`` of the band-input
-        entries, singular values below ``1e-6`` of the bin's largest counting
+        to 256 spread bins with input from every experiment and in at least
+        ``P`` of the band-input entries, singular values below ``1e-6`` of the bin's largest counting
         as dependence; an input that misses bands is left to the fit's
         per-bin check), computed from one DFT of
         each record (``input_spectra``, the one-sided DFTs of ``u``

@@ -729,7 +729,10 @@ def nearly_dependent_windows(spectra: OneSidedSpectra, layout: LocalModelLayout,
     -------
     ndarray of shape (M//2+1,), bool, or None
         True at the windows (slow bins ``0..M//2``) to mark invalid. Windows
-        with no input energy at all are left to the excitation test.
+        with no input energy at all are left to the excitation test; an
+        experiment without input in a window (below ``1e-12`` of the others'
+        energy there, e.g. a band-limited experiment next to a broadband one)
+        counts as dependent there, as it adds no equation on the FRF.
     """
     P = layout.n_experiments
     need = experiments_needed(layout)

@@ -854,7 +854,8 @@ def _warn_nearly_dependent(near, layout, M) -> None:
         f"the {P} experiments differ from a linear combination of each other by "
         f"less than about {200 * NEAR_DEPENDENCE_TOL ** 0.5:.0f} % (e.g. one "
         "excitation repeated and measured with a "
-        f"noisy input sensor), and their local model ({layout.n_params} "
+        "noisy input sensor), or some of the experiments have no input there "
+        f"(e.g. one band-limited), and their local model ({layout.n_params} "
         f"parameters, {layout.window} equations per experiment) needs {need} "
         "independent experiments. Their FRF would be dominated and biased by the "
         "noise far beyond its std: it is NaN and valid_ is False. " + fix + ".",

@@ -412,9 +412,10 @@ def _nearly_dependent_counts(u, F, layouts, todo) -> dict:
     """Per candidate ``i`` of ``todo``, the windows whose experiments are
     nearly dependent for its layout
     (:func:`lrmfrf.local_models.nearly_dependent_windows`, which the refit
-    marks invalid); the input spectra are computed only when some candidate
+    marks invalid): a boolean array over slow bins ``0..M//2``, or None when
+    no window is; the input spectra are computed only when some candidate
     needs several experiments."""
-    counts = dict.fromkeys(todo, 0)
+    masks = dict.fromkeys(todo)
     spectra = None
     for i in todo:
         layout = layouts[i]
@@ -426,9 +427,19 @@ def _nearly_dependent_counts(u, F, layouts, todo) -> dict:
             spectra = OneSidedSpectra(np.fft.rfft(u_n, axis=-1), None,
                                       u.shape[-1], F)
         near = nearly_dependent_windows(spectra, layout)
-        if near is not None:
-            counts[i] = int(np.count_nonzero(near))
-    return counts
+        if near is not None and near.any():
+            masks[i] = near
+    return masks
+
+
+def _invalid_with_near(res, ok, near, n_y: int) -> int:
+    """``res.n_invalid`` plus the nearly dependent windows ``near`` of each
+    output row that are not already invalid (``ok``: the well-posed windows,
+    ``(n_y, M//2+1)``): a window is counted once."""
+    if near is None:
+        return res.n_invalid
+    ok = np.asarray(ok).reshape(n_y, -1)
+    return res.n_invalid + int(np.count_nonzero(near[None, :] & ok))
 
 
 def _pmse_reference(layouts, n_invalid) -> int:
@@ -787,11 +798,17 @@ class _LocalModelCV(_BaseFRFEstimator):
         value = np.full(len(candidates), np.inf)
         n_invalid = np.full(len(candidates), half_slow_bins(M).size * y.shape[1])
         near = _nearly_dependent_counts(u, F, layouts, todo)
-        for i, res in zip(todo, results, strict=True):
+        for j, (i, res) in enumerate(zip(todo, results, strict=True)):
             value[i] = res.value
             # the windows the fit marks invalid for nearly dependent
-            # experiments count as invalid (each output row's)
-            n_invalid[i] = res.n_invalid + y.shape[1] * near[i]
+            # experiments count as invalid (each output row's), once: not
+            # again where the local problem is rank-deficient already
+            if near[i] is not None:
+                ok = (ingredients[j][2] if criterion == "pmse"
+                      else ~np.isnan(res.per_bin))  # NaN where not well posed
+                n_invalid[i] = _invalid_with_near(res, ok, near[i], y.shape[1])
+            else:
+                n_invalid[i] = res.n_invalid
         if not np.isfinite(value).any():
             raise ValueError(
                 f"No candidate of the grid is identifiable on these data: every "
