@@ -153,8 +153,10 @@ class _LocalModelEstimator(_BaseFRFEstimator):
             does not excite every aliased band): those bins are NaN with
             ``valid_ == False``. Once more when the windows need several
             experiments and in some of them the experiments' inputs are
-            nearly linearly dependent (differ by less than about 2 %, e.g. one
-            excitation repeated with a noisy input sensor): those bins are NaN
+            nearly linearly dependent (differ by less than about 2 % for two
+            experiments, about 3 % for three nearly equal ones, e.g. one
+            excitation repeated with a noisy input sensor) or some have no
+            input there: those bins are NaN
             with ``valid_ == False`` too
             (:func:`lrmfrf.local_models.nearly_dependent_windows`).
 
@@ -307,8 +309,10 @@ class _LocalModelEstimator(_BaseFRFEstimator):
             if n_u > 1 and n_bad > n_unexcited:
                 msg += (
                     f" With {n_u} inputs, inputs that are linearly dependent "
-                    "(e.g. one a multiple of another) leave the problem "
-                    "rank-deficient too: excite them independently "
+                    "(e.g. one a multiple of another), or a band excited at too "
+                    "few bins of the window (e.g. at the edge of a band-limited "
+                    "input), leave the problem rank-deficient too: excite the "
+                    "inputs independently over the whole band "
                     "(lrmfrf.signals.orthogonal_multisines)."
                 )
             warnings.warn(msg, IdentifiabilityWarning, stacklevel=3)
@@ -852,7 +856,8 @@ def _warn_nearly_dependent(near, layout, M) -> None:
         f"{count} of {near.size} slow bins ({100 * count / near.size:.0f} %) have "
         f"nearly linearly dependent experiments: in their windows the inputs of "
         f"the {P} experiments differ from a linear combination of each other by "
-        f"less than about {200 * NEAR_DEPENDENCE_TOL ** 0.5:.0f} % (e.g. one "
+        f"less than about {200 * NEAR_DEPENDENCE_TOL ** 0.5:.0f} % (two "
+        "experiments; more for several nearly equal ones; e.g. one "
         "excitation repeated and measured with a "
         "noisy input sensor), or some of the experiments have no input there "
         f"(e.g. one band-limited), and their local model ({layout.n_params} "
