@@ -280,3 +280,51 @@ def test_an_experiment_without_input_in_a_window_is_named(plant):
     slow = np.minimum(slow, M - slow)
     assert not est.valid_[..., slow >= 50 + 18].any()
     assert est.valid_[..., slow < 50 - 18].all()
+
+
+def test_nearly_dependent_windows_are_not_refined(plant):
+    """With refinement, the windows that end invalid are not refined: the
+    other windows' FRF is the same bit for bit, and the fit gives only the
+    near-dependence warning (it also refined the flagged windows, and
+    counted them again as rank-deficient once set invalid first). Here all
+    windows are flagged: before, SK and its guard warned about them too."""
+    rng = np.random.default_rng(1)
+    u1 = _multisines(2, rng)
+    u = np.stack([u1, u1 + 1e-3 * rng.standard_normal(u1.shape)])
+    y = _outputs(plant, u)
+    with warnings.catch_warnings(record=True) as record:
+        warnings.simplefilter("always")
+        est = LRMBeyondNyquist(sk_iterations=10).fit(u, y, F)
+    assert [w.category for w in record] == [IdentifiabilityWarning], \
+        [str(w.message)[:80] for w in record]
+    assert "nearly linearly dependent" in str(record[0].message)
+    assert not est.valid_.any() and est.n_sk_iter_ == 0 and est.n_guarded_ == 0
+
+
+def test_the_windows_left_valid_are_refined_as_before(plant):
+    """Part of the windows flagged (the second experiment repeats the first
+    below slow bin 40): the refined FRF of the others is the one of a fit
+    that refines every window, bit for bit."""
+    rng = np.random.default_rng(4)
+    u1 = _multisines(2, rng)
+    spectrum = np.fft.rfft(u1, axis=-1)
+    k = np.arange(spectrum.shape[-1])
+    folded = np.minimum(k % M, M - k % M)
+    other = np.abs(spectrum) * np.exp(2j * np.pi * rng.random(spectrum.shape))
+    other[..., 0], other[..., -1] = spectrum[..., 0], spectrum[..., -1]
+    u = np.stack([u1, np.fft.irfft(np.where(folded < 40, spectrum, other), n=N,
+                                   axis=-1)])
+    y = _outputs(plant, u)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        est = LRMBeyondNyquist(sk_iterations=5).fit(u, y, F)
+        check = local_estimators.nearly_dependent_windows
+        local_estimators.nearly_dependent_windows = lambda *a, **k: None
+        try:
+            every = LRMBeyondNyquist(sk_iterations=5).fit(u, y, F)
+        finally:
+            local_estimators.nearly_dependent_windows = check
+    valid = est.valid_
+    assert 0 < valid.mean() < 1
+    np.testing.assert_array_equal(est.frf_[valid], every.frf_[valid])
+    np.testing.assert_array_equal(est.frf_std_[valid], every.frf_std_[valid])

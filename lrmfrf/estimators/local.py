@@ -225,6 +225,9 @@ class _LocalModelEstimator(_BaseFRFEstimator):
                     U, Y_o, layout, return_cov=True, backend=backend
                 )
                 if refines:  # linearised variance, at the eiv noise level
+                    # nearly dependent windows end invalid: not refined (work
+                    # and warnings of windows whose values are dropped)
+                    local_fit = _invalidated(local_fit, near)
                     fit = self._refine(U, Y_o, layout, local_fit, params,
                                        y_exponent)
                     fit = calibrated_refined_fit(U, Y_o, layout, local_fit, fit,
@@ -292,7 +295,10 @@ class _LocalModelEstimator(_BaseFRFEstimator):
             # (the fast bins of the chunk's slow bins: the same for every row)
             runs = _fast_grid_runs(start, start + fits[0].slow_bins.size, N, F)
             for o, fit in enumerate(fits):
-                n_bad += int(np.count_nonzero(~fit.well_posed))
+                bad = ~fit.well_posed
+                if near is not None:  # not refined (whole fits): warned below
+                    bad = bad & ~near[fit.slow_bins]
+                n_bad += int(np.count_nonzero(bad))
                 n_unexcited += int(np.count_nonzero(~fit.excited))
                 out.write(o, start, fit, N, F, u_exponent, y_exponent, runs)
         if n_bad:
