@@ -285,9 +285,9 @@ def test_an_experiment_without_input_in_a_window_is_named(plant):
 def test_nearly_dependent_windows_are_not_refined(plant):
     """With refinement, the windows that end invalid are not refined: the
     other windows' FRF is the same bit for bit, and the fit gives only the
-    near-dependence warning (it also refined the flagged windows, and
-    counted them again as rank-deficient once set invalid first). Here all
-    windows are flagged: before, SK and its guard warned about them too."""
+    near-dependence warning, not a second one calling them rank-deficient.
+    Here all windows are flagged: before, they were refined, and SK and its
+    guard warned about them."""
     rng = np.random.default_rng(1)
     u1 = _multisines(2, rng)
     u = np.stack([u1, u1 + 1e-3 * rng.standard_normal(u1.shape)])
