@@ -132,8 +132,8 @@ Re-measured when the open-loop records of the benchmark changed (suspended
 stages, the steady state of a force shaped to the plant, instead of a free
 body pushed by a flat force from rest): GAIC 1.11x (worst 1.91x) on the tuning
 and 1.14x (worst 1.49x) on the held-out records, AICc 1.14x / 1.09x, the best
-fixed setting (36, 5, 5, 7) 1.09x / 1.08x. GAIC stays the default (it is
-still the better of the two on the tuning stages); neither meets the issue's
+fixed setting (36, 5, 5, 7) 1.09x / 1.08x. GAIC stayed the default then (it
+was still the better of the two on the tuning stages); neither meets the issue's
 targets, the closed-loop records being the hard ones (README).
 
 Why AICc was the default before (``benchmarks/selection.py``: wafer
