@@ -328,3 +328,24 @@ def test_the_windows_left_valid_are_refined_as_before(plant):
     assert 0 < valid.mean() < 1
     np.testing.assert_array_equal(est.frf_[valid], every.frf_[valid])
     np.testing.assert_array_equal(est.frf_std_[valid], every.frf_std_[valid])
+
+
+def test_per_band_selection_counts_nearly_dependent_windows_as_invalid(plant):
+    """With ``per_band=True`` and ``bands``, each region takes the candidate
+    with the fewest invalid windows there: the windows its refit marks
+    invalid for nearly dependent experiments count too. The per-region count
+    read only the rank-deficient windows: with aicc here the upper region took
+    half window 18 (all its windows nearly dependent), and 58 % of the
+    blended FRF was NaN where half window 24 identifies every bin (measured
+    in review)."""
+    rng = np.random.default_rng(1)
+    u1 = _multisines(2, rng)
+    u = np.stack([u1, u1 + 1e-3 * rng.standard_normal(u1.shape)])
+    y = _outputs(plant, u)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        cv = LRMBeyondNyquistCV(half_windows=(18, 24), num_degrees=(4,),
+                                den_degrees=(7,), criterion="aicc",
+                                per_band=True, bands=2).fit(u, y, F)
+    assert [p["half_window"] for p in cv.band_params_] == [24, 24]
+    assert cv.valid_.all()
