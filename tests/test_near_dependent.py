@@ -349,3 +349,49 @@ def test_per_band_selection_counts_nearly_dependent_windows_as_invalid(plant):
                                 per_band=True, bands=2).fit(u, y, F)
     assert [p["half_window"] for p in cv.band_params_] == [24, 24]
     assert cv.valid_.all()
+
+
+@pytest.mark.parametrize("std_method", ["lemma2", "hc"])
+def test_rank_deficiency_warning_counts_only_the_other_windows(plant, std_method):
+    """Band-limited inputs (no energy above 0.8 x Nyquist) leave windows
+    rank-deficient, and the second experiment repeats the first from slow bin
+    60 on, where the windows are nearly dependent: the rank-deficiency
+    warning counts the windows that are not nearly dependent (those get
+    their own warning), and so do its "of them because the input has no
+    energy" and its fast bins. They counted the nearly dependent windows
+    too (72 slow bins, "129 of them" unexcited and 420 fast bins here;
+    measured in review), more unexcited windows than rank-deficient ones."""
+    import re
+
+    from lrmfrf.local_models import nearly_dependent_windows, one_sided_fast_grid
+
+    rng = np.random.default_rng(8)
+    bins = np.arange(1, N // 2 + 1)
+    band = bins[bins < int(0.8 * N / 2)]
+
+    def inputs():
+        return np.stack([multisine(N, bins=band, rng=rng) for _ in range(2)])
+
+    u1, u2 = inputs(), inputs()
+    s1, s2 = np.fft.rfft(u1, axis=-1), np.fft.rfft(u2, axis=-1)
+    k = np.arange(s1.shape[-1])
+    folded = np.minimum(k % M, M - k % M)
+    u = np.stack([u1, np.fft.irfft(np.where(folded >= 60, s1, s2), n=N, axis=-1)])
+    y = _outputs(plant, u)
+    with pytest.warns(IdentifiabilityWarning) as record:
+        est = LRMBeyondNyquist(std_method=std_method).fit(u, y, F)
+    messages = [str(w.message) for w in record if "rank-deficient" in str(w.message)]
+    assert len(messages) == 1
+    found = re.search(r"(\d+) of \d+ slow bins \(over all output rows\) \((\d+) of "
+                      r"\d+ fast bins.*\((\d+) of them because", messages[0])
+    n_bad, n_fast, n_unexcited = map(int, found.groups())
+    near = nearly_dependent_windows(OneSidedSpectra.from_records(u, y, F),
+                                    est.layout_)
+    assert 0 < near.sum() < near.size
+    fits = est.local_fit_
+    assert n_bad == sum(int(np.sum(~fit.well_posed & ~near)) for fit in fits) > 0
+    assert n_unexcited == sum(int(np.sum(~fit.excited & ~near)) for fit in fits)
+    assert n_unexcited <= n_bad
+    near_fast = one_sided_fast_grid(np.repeat(near[:, None], F, axis=1), N, F,
+                                    conj=False)
+    assert n_fast == int(np.sum(~est.valid_[:, 0] & ~near_fast))
