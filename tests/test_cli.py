@@ -116,6 +116,13 @@ INPROCESS_CASES = {
     "bad local degrees": (["fit", "good.csv", *FIT, "--half-window", "3", "--out",
                            "o"], 1,
                           ["good.csv", "Too few equations", "Increase --half-window"]),
+    # the estimator's overlap check, in flags: it named `overlap` (the
+    # parameter) next to --segment-length
+    "overlap too large": (["fit", "good.csv", *FIT, "--method", "sa",
+                           "--segment-length", "20", "--overlap", "30", "--out",
+                           "o"], 1,
+                          ["good.csv", "`--overlap` must be less than "
+                           "`--segment-length`", "Got --overlap=30"]),
     "out is a file": (["fit", "good.csv", *FIT, "--out", "good.csv"], 1,
                       ["good.csv", "--out is a file"]),
     "existing output": (["fit", "good.csv", *FIT, "--out", "taken"], 1,

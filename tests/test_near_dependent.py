@@ -50,6 +50,13 @@ def _outputs(plant, u, snr_db=60):
                      for p in range(u.shape[0])])
 
 
+def _band_limited_multisines(n_u, rng):
+    """Multisines without energy above 0.8 x the fast Nyquist frequency."""
+    bins = np.arange(1, N // 2 + 1)
+    band = bins[bins < int(0.8 * N / 2)]
+    return np.stack([multisine(N, bins=band, rng=rng) for _ in range(n_u)])
+
+
 def _quiet_fit(estimator, u, y):
     """Fit with every warning an error; also the fit without the check (the
     estimator's old path): the results must be the same bit for bit."""
@@ -109,12 +116,17 @@ def test_nearly_dependent_experiments_are_invalid_with_the_fix(plant, eps):
         assert LRMBeyondNyquist(half_window=21).fit(u, y, F).valid_.all()
 
 
-@pytest.mark.parametrize("criterion", ["aicc", "gcv"])
-def test_selection_counts_nearly_dependent_windows_as_invalid(plant, criterion):
+@pytest.mark.parametrize("criterion, per_band", [("aicc", {}), ("gcv", {}),
+                                                  ("aicc", {"bands": 2})])
+def test_selection_counts_nearly_dependent_windows_as_invalid(plant, criterion,
+                                                              per_band):
     """The CV estimators prefer the candidates that identify the most bins:
     the windows a nearly dependent candidate would mark invalid count. The
     old code chose half window 18 here with these criteria (all 101 windows
-    nearly dependent, fitted valid); 24 needs one experiment per window."""
+    nearly dependent, fitted valid); 24 needs one experiment per window.
+    With ``per_band=True`` and ``bands`` each region counts them too: it read
+    only the rank-deficient windows, and the upper region took 18, leaving
+    58 % of the blended FRF NaN (measured in review)."""
     rng = np.random.default_rng(1)
     u1 = _multisines(2, rng)
     u = np.stack([u1, u1 + 1e-3 * rng.standard_normal(u1.shape)])
@@ -122,10 +134,13 @@ def test_selection_counts_nearly_dependent_windows_as_invalid(plant, criterion):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         cv = LRMBeyondNyquistCV(half_windows=(18, 24), num_degrees=(4,),
-                                den_degrees=(7,), criterion=criterion).fit(u, y, F)
+                                den_degrees=(7,), criterion=criterion,
+                                per_band=bool(per_band), **per_band).fit(u, y, F)
     assert cv.best_params_["half_window"] == 24
     assert list(cv.cv_results_["n_invalid_bins"]) == [3 * 101, 0]
     assert cv.valid_.all()
+    if per_band:
+        assert [p["half_window"] for p in cv.band_params_] == [24, 24]
 
 
 def test_only_the_windows_where_the_experiments_agree_are_invalid(plant):
@@ -233,14 +248,8 @@ def test_selection_counts_a_window_invalid_once(plant, criterion):
     block; measured in review), which can rank a candidate with more truly
     invalid windows first; each counts once, as the refit marks them."""
     rng = np.random.default_rng(8)
-    bins = np.arange(1, N // 2 + 1)
-    band = bins[bins < int(0.8 * N / 2)]
-
-    def inputs():
-        return np.stack([multisine(N, bins=band, rng=rng) for _ in range(2)])
-
-    u1 = inputs()
-    u = np.stack([u1, u1 + 1e-3 * inputs()])
+    u1 = _band_limited_multisines(2, rng)
+    u = np.stack([u1, u1 + 1e-3 * _band_limited_multisines(2, rng)])
     y = _outputs(plant, u)
     n_y = y.shape[1]
     with warnings.catch_warnings():
@@ -328,3 +337,43 @@ def test_the_windows_left_valid_are_refined_as_before(plant):
     assert 0 < valid.mean() < 1
     np.testing.assert_array_equal(est.frf_[valid], every.frf_[valid])
     np.testing.assert_array_equal(est.frf_std_[valid], every.frf_std_[valid])
+
+
+@pytest.mark.parametrize("std_method", ["lemma2", "hc"])
+def test_rank_deficiency_warning_counts_only_the_other_windows(plant, std_method):
+    """Band-limited inputs (no energy above 0.8 x Nyquist) leave windows
+    rank-deficient, and the second experiment repeats the first from slow bin
+    60 on, where the windows are nearly dependent: the rank-deficiency
+    warning counts the windows that are not nearly dependent (those get
+    their own warning), and so do its "of them because the input has no
+    energy" and its fast bins. They counted the nearly dependent windows
+    too (72 slow bins, "129 of them" unexcited and 420 fast bins here;
+    measured in review), more unexcited windows than rank-deficient ones."""
+    import re
+
+    from lrmfrf.local_models import nearly_dependent_windows, one_sided_fast_grid
+
+    rng = np.random.default_rng(8)
+    u1, u2 = _band_limited_multisines(2, rng), _band_limited_multisines(2, rng)
+    s1, s2 = np.fft.rfft(u1, axis=-1), np.fft.rfft(u2, axis=-1)
+    k = np.arange(s1.shape[-1])
+    folded = np.minimum(k % M, M - k % M)
+    u = np.stack([u1, np.fft.irfft(np.where(folded >= 60, s1, s2), n=N, axis=-1)])
+    y = _outputs(plant, u)
+    with pytest.warns(IdentifiabilityWarning) as record:
+        est = LRMBeyondNyquist(std_method=std_method).fit(u, y, F)
+    messages = [str(w.message) for w in record if "rank-deficient" in str(w.message)]
+    assert len(messages) == 1
+    found = re.search(r"(\d+) of \d+ slow bins \(over all output rows\) \((\d+) of "
+                      r"\d+ fast bins.*\((\d+) of them because", messages[0])
+    n_bad, n_fast, n_unexcited = map(int, found.groups())
+    near = nearly_dependent_windows(OneSidedSpectra.from_records(u, y, F),
+                                    est.layout_)
+    assert 0 < near.sum() < near.size
+    fits = est.local_fit_
+    assert n_bad == sum(int(np.sum(~fit.well_posed & ~near)) for fit in fits) > 0
+    assert n_unexcited == sum(int(np.sum(~fit.excited & ~near)) for fit in fits)
+    assert n_unexcited <= n_bad
+    near_fast = one_sided_fast_grid(np.repeat(near[:, None], F, axis=1), N, F,
+                                    conj=False)
+    assert n_fast == int(np.sum(~est.valid_[:, 0] & ~near_fast))

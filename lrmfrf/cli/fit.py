@@ -230,7 +230,7 @@ def _subfolder_names(inputs: list[Path]) -> list[str]:
 #: The estimators' parameters named in their errors, and this command's flags.
 _FLAGS = {name: "--" + name.replace("_", "-") for name in (
     "half_window", "num_degree", "transient_degree", "den_degree",
-    "sk_iterations", "segment_length")}
+    "sk_iterations", "segment_length", "overlap")}
 
 
 def _cli_words(text: str) -> str:

@@ -299,13 +299,18 @@ class _LocalModelEstimator(_BaseFRFEstimator):
                 if near is not None:  # not refined (whole fits): warned below
                     bad = bad & ~near[fit.slow_bins]
                 n_bad += int(np.count_nonzero(bad))
-                n_unexcited += int(np.count_nonzero(~fit.excited))
+                # (not excited: not well posed either)
+                n_unexcited += int(np.count_nonzero(~fit.excited & bad))
                 out.write(o, start, fit, N, F, u_exponent, y_exponent, runs)
         if n_bad:
             rows_note = " (over all output rows)" if n_y > 1 else ""
+            bad_fast = ~out.valid[:, 0]
+            if near is not None:  # the fast bins of the windows counted here
+                bad_fast = bad_fast & ~one_sided_fast_grid(
+                    np.repeat(near[:, None], F, axis=1), N, F, conj=False)
             msg = (
                 f"{n_bad} of {n_y * B} slow bins{rows_note} "
-                f"({np.count_nonzero(~out.valid[:, 0])} of {n_y * K} fast bins of "
+                f"({np.count_nonzero(bad_fast)} of {n_y * K} fast bins of "
                 "frf_) are not identifiable: their local problem is rank-deficient "
                 f"({n_unexcited} of them because the input has no energy in some "
                 "aliased band of the window). Their FRF is NaN and valid_ is "

@@ -442,6 +442,17 @@ def _invalid_with_near(res, ok, near, n_y: int) -> int:
     return res.n_invalid + int(np.count_nonzero(near[None, :] & ok))
 
 
+def _without_near(per_bin, near):
+    """``per_bin`` (``(M//2+1,)`` or ``(n_y, M//2+1)``) with the nearly
+    dependent windows ``near`` NaN, as the not well-posed ones (a copy);
+    ``per_bin`` itself when ``near`` is None."""
+    if near is None:
+        return per_bin
+    per_bin = np.array(per_bin, dtype=float)
+    per_bin[..., near] = np.nan
+    return per_bin
+
+
 def _pmse_reference(layouts, n_invalid) -> int:
     """The ``"pmse"`` reference: of the scored candidates with the fewest
     invalid windows, the widest window, then the most parameters."""
@@ -840,7 +851,10 @@ class _LocalModelCV(_BaseFRFEstimator):
             self._fit_per_bin(params, u, y, F, sample_time, candidates,
                               np.array(enough) if enough else identifiable)
         elif params.get("per_band"):
-            per_bin = {i: res.per_bin for i, res in zip(todo, results, strict=True)}
+            # the windows the refit marks invalid for nearly dependent
+            # experiments are invalid in each region's count too
+            per_bin = {i: _without_near(res.per_bin, near[i])
+                       for i, res in zip(todo, results, strict=True)}
             self._fit_per_band(params, u, y, F, sample_time, candidates, layouts,
                                per_bin, criterion)
         return self
