@@ -111,6 +111,10 @@ __all__ = [
     "neighbour_disagreement",
     "neighbour_bias_term",
     "robust_band_covariance",
+    "ExperimentNoiseLevels",
+    "experiment_noise_levels",
+    "unequal_noise_rows",
+    "experiment_noise_weights",
 ]
 
 #: Routes of :func:`band_covariance`.
