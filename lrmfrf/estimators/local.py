@@ -48,6 +48,7 @@ from ..uncertainty import (
     calibrated_local_fit,
     calibrated_refined_fit,
     check_std_method,
+    experiment_noise_weights,
     iter_calibrated_fit_rows,
     keeps_lemma2,
 )
@@ -201,6 +202,12 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         near = nearly_dependent_windows(spectra, layout)
         if near is not None and not near.any():
             near = None
+        # MIMO experiments with clearly unequal noise levels (per output row):
+        # those rows are fitted on experiments weighted to equal levels (None:
+        # the levels agree, the unweighted fit)
+        weights = None
+        if n_u > 1 or n_y > 1:
+            weights = experiment_noise_weights(spectra, layout)
         self._reset_refinement()
         refines = self._refines(params)
         std_method = params.get("std_method", "lemma2")
@@ -221,29 +228,31 @@ class _LocalModelEstimator(_BaseFRFEstimator):
             fits = []
             for o in range(n_y):  # one local problem (one denominator) per row
                 Y_o = spectra.full_outputs(o)
+                U_o = U
+                if weights is not None and np.any(weights[:, o] != 1.0):
+                    U_o, Y_o = U * weights[:, o, None], Y_o * weights[:, o, None]
                 local_fit = fit_local_models(
-                    U, Y_o, layout, return_cov=True, backend=backend
+                    U_o, Y_o, layout, return_cov=True, backend=backend
                 )
                 if refines:  # linearised variance, at the eiv noise level
                     # nearly dependent windows end invalid: not refined (work
                     # and warnings of windows whose values are dropped)
                     local_fit = _invalidated(local_fit, near)
-                    fit = self._refine(U, Y_o, layout, local_fit, params,
+                    fit = self._refine(U_o, Y_o, layout, local_fit, params,
                                        y_exponent)
-                    fit = calibrated_refined_fit(U, Y_o, layout, local_fit, fit,
+                    fit = calibrated_refined_fit(U_o, Y_o, layout, local_fit, fit,
                                                  std_method)
                 else:  # closed form: the std route (lrmfrf.uncertainty)
-                    fit = calibrated_local_fit(U, Y_o, layout, local_fit,
+                    fit = calibrated_local_fit(U_o, Y_o, layout, local_fit,
                                                std_method)
-                fits.append(fit)
+                fits.append(_unweighted(fit, weights, o))
             if self._refinements:  # at the caller of fit, naming the rows
                 emit_refinement_warnings(self._refinements)
-            del U, self._refined_rows, self._refinements
-            chunks = [(0, fits)]
+            del U, U_o, self._refined_rows, self._refinements
+            chunks = [(0, range(n_y), fits)]
         else:  # streamed, all output rows at once: no per-window parameters kept
-            chunks = iter_calibrated_fit_rows(
-                spectra, layout, std_method, return_cov=True, backend=backend
-            )
+            chunks = _iter_weighted_fit_rows(spectra, layout, std_method, backend,
+                                             weights)
         try:
             self._set_fitted(chunks, layout, N, M, F, P, n_y, sample_time,
                              u_exponent, y_exponent, near)
@@ -261,8 +270,10 @@ class _LocalModelEstimator(_BaseFRFEstimator):
             self._local_fit_cache_ = None
             self._local_fit_source_ = _LocalFitSource(
                 spectra, layout, u_exponent, y_exponent, backend, std_method,
-                near,
+                near, weights,
             )
+        self.noise_weights_ = (np.ones((P, n_y)) if weights is None
+                               else weights.copy())
         return self
 
     def _set_fitted(
@@ -271,11 +282,11 @@ class _LocalModelEstimator(_BaseFRFEstimator):
     ) -> None:
         """Set the fitted attributes from the local fits of each output row.
 
-        ``chunks`` yields ``(start, fits)``: ``fits[o]`` the (normalised)
-        results of slow bins ``start..`` of output row ``o`` (all of them at
-        once, or chunk by chunk from :func:`lrmfrf.local_models.
-        iter_local_fit_rows`); they are written into the outputs, allocated
-        once, and not kept.
+        ``chunks`` yields ``(start, rows, fits)``: ``fits[i]`` the
+        (normalised) results of slow bins ``start..`` of output row
+        ``rows[i]`` (all of them at once, or chunk by chunk from
+        :func:`lrmfrf.local_models.iter_local_fit_rows`); they are written
+        into the outputs, allocated once, and not kept.
         """
         n_u = layout.n_inputs
         siso = n_u == 1 and n_y == 1
@@ -291,10 +302,10 @@ class _LocalModelEstimator(_BaseFRFEstimator):
             transient=np.empty((P, n_y, B), dtype=complex),
         )
         n_bad = n_unexcited = 0
-        for start, fits in chunks:
+        for start, rows, fits in chunks:
             # (the fast bins of the chunk's slow bins: the same for every row)
             runs = _fast_grid_runs(start, start + fits[0].slow_bins.size, N, F)
-            for o, fit in enumerate(fits):
+            for o, fit in zip(rows, fits, strict=True):
                 bad = ~fit.well_posed
                 if near is not None:  # not refined (whole fits): warned below
                     bad = bad & ~near[fit.slow_bins]
@@ -474,6 +485,22 @@ default="eiv"
         R_e = 7). It estimates the variance of the weighted equation error
         ``e(x) V_l``; ``frf_std_`` (``std_method="eiv"``) uses its own
         estimate of the variance of ``V_l`` (:mod:`lrmfrf.uncertainty`).
+        In an output row whose experiments are weighted (``noise_weights_``)
+        it is the variance of the weighted records' noise: about the mean of
+        the experiments' levels.
+    noise_weights_ : ndarray of shape (P, n_y)
+        Weight of each experiment in the fit of each output row: 1 unless
+        the experiments' noise levels in a row clearly differ (MIMO, ``P >
+        1``; by more than 1.5x in variance and well beyond the spread of
+        their estimate, :func:`lrmfrf.uncertainty.experiment_noise_weights`).
+        Then that row is fitted on the experiments' inputs and outputs both
+        scaled by ``1 / sqrt(level / mean level)`` (the FRF is unchanged,
+        the noise levels equalised), so that ``frf_std_``, which assumes one
+        noise level per row, is calibrated, and the noisier experiments
+        count less. Without it the std was 0.7-0.8x the Monte-Carlo std on
+        some entries and 1.6-5x on others when one input was excited at a
+        time (``benchmarks/unequal_noise.py``). SISO fits and ``P = 1``: all
+        ones.
     transient_ : ndarray of shape (M//2+1,) or (P, M//2+1), complex
         Transient term in the slow output DFT at each window centre; (P, n_y,
         M//2+1) when not SISO.
@@ -909,17 +936,18 @@ class _LocalFitSource:
     backend: str
     std_method: str = "lemma2"
     near: np.ndarray | None = None  # nearly dependent windows (invalid)
+    weights: np.ndarray | None = None  # experiments' noise weights (P, n_y)
 
     def compute(self):
         """The fit's ``local_fit_``: a LocalModelFit, or a list per output row."""
         n_y = self.spectra.outputs.shape[1]
         bins = half_slow_bins(self.spectra.n_slow)
         rows = [[] for _ in range(n_y)]
-        for _, chunk in iter_calibrated_fit_rows(
-            self.spectra, self.layout, self.std_method, return_cov=True,
-            backend=self.backend,
-        ):
-            for o, fit in enumerate(chunk):
+        chunks = _iter_weighted_fit_rows(self.spectra, self.layout,
+                                         self.std_method, self.backend,
+                                         self.weights)
+        for _, outputs, chunk in chunks:
+            for o, fit in zip(outputs, chunk, strict=True):
                 rows[o].append(fit)
         fits = [
             rescale_local_fit(_invalidated(_joined_fits(parts, bins), self.near),
@@ -927,3 +955,46 @@ class _LocalFitSource:
             for parts in rows
         ]
         return fits[0] if n_y == 1 and self.layout.n_inputs == 1 else fits
+
+
+def _iter_weighted_fit_rows(spectra, layout, std_method, backend, weights):
+    """:func:`lrmfrf.uncertainty.iter_calibrated_fit_rows` yielding ``(start,
+    rows, fits)``, with the output rows whose experiments are weighted
+    (``weights[:, o]`` not all 1, :func:`lrmfrf.uncertainty.
+    experiment_noise_weights`) fitted one by one on their weighted spectra
+    (the input weights differ between rows), after the other rows together
+    (unchanged). ``weights`` None: all rows at once, as before."""
+    n_y = spectra.outputs.shape[1]
+    if weights is None:
+        groups = [(list(range(n_y)), spectra)]
+    else:
+        weighted = [o for o in range(n_y) if np.any(weights[:, o] != 1.0)]
+        plain = [o for o in range(n_y) if o not in weighted]
+        groups = [(plain, OneSidedSpectra(spectra.inputs, spectra.outputs[:, plain],
+                                          spectra.n_samples, spectra.F))] \
+            if plain else []
+        for o in weighted:
+            scale = weights[:, o, None, None]
+            groups.append(([o], OneSidedSpectra(
+                spectra.inputs * scale, spectra.outputs[:, [o]] * scale,
+                spectra.n_samples, spectra.F)))
+    for rows, part in groups:
+        chunks = iter_calibrated_fit_rows(part, layout, std_method,
+                                          return_cov=True, backend=backend)
+        try:
+            for start, fits in chunks:
+                yield start, rows, [_unweighted(fit, weights, o)
+                                    for o, fit in zip(rows, fits, strict=True)]
+        finally:  # (the generator holds a single-threaded-BLAS section)
+            chunks.close()
+
+
+def _unweighted(fit, weights, o):
+    """``fit`` of output row ``o`` with its transient back in the units of
+    the records (the weighted fit's is scaled by each experiment's weight);
+    ``fit`` itself for an unweighted row. The FRF, its std and the noise
+    variance (of the weighted experiments: the mean of their levels) are
+    those of the weighted fit."""
+    if weights is None or not np.any(weights[:, o] != 1.0):
+        return fit
+    return replace(fit, transient=fit.transient / weights[:, o])
