@@ -379,6 +379,22 @@ def _combine(per_bin, well_posed, layout, criterion, n_slow) -> float:
     return mean
 
 
+def _in_record_units(values, criterion: str, y_exponent: int):
+    """Criterion values of records normalised by ``2**-y_exponent`` (the
+    outputs; the inputs' scale does not enter a residual) in the records' own
+    units: ``"pmse"`` is relative (unchanged), ``"aicc"`` and ``"gaic"`` are
+    logs of a squared output (``+ 2 y_exponent log 2``), ``"gcv"`` and
+    ``"press"`` squared outputs (``* 4**y_exponent``, exact; beyond the float
+    range they are inf or 0 as the estimators' variances). ``values``
+    itself when ``y_exponent == 0``."""
+    if y_exponent == 0 or criterion == "pmse":
+        return values
+    values = np.asarray(values, dtype=float)
+    if criterion in ("aicc", "gaic"):
+        return values + 2 * y_exponent * np.log(2.0)
+    return scale_by_power_of_two(values, 2 * y_exponent)
+
+
 def _pmse_ingredients(U, Y, layout, *, chunk_size=None, backend="auto"):
     """Band FRFs, their Lemma-2 variances and the well-posed mask per window.
 
@@ -782,8 +798,15 @@ class _LocalModelCV(_BaseFRFEstimator):
                 "half_windows (each needs P*(2n+1) > (R_g+1) F n_u + P(R_t+1) + "
                 "R_e and 2n+1 <= M)."
             )
-        U = dft(u).reshape(P, n_u * N)  # inputs concatenated
-        Y = dft(y)[:, 0] if y.shape[1] == 1 else dft(y)  # (P, M) or (P, n_y, M)
+        # The criteria are scored on the records normalised by powers of two,
+        # as the estimators fit them (exact; ordinary records untouched): the
+        # residuals of records at 2**600 overflow in their own units, those of
+        # records at 2**-600 underflow. Temporaries, not the caller's arrays.
+        u_exponent = power_of_two_exponent(u)
+        y_exponent = power_of_two_exponent(y)
+        U = dft(scale_by_power_of_two(u, -u_exponent)).reshape(P, n_u * N)
+        Y = dft(scale_by_power_of_two(y, -y_exponent))
+        Y = Y[:, 0] if y.shape[1] == 1 else Y  # (P, M) or (P, n_y, M)
         todo = [i for i, layout in enumerate(layouts) if layout is not None]
         if criterion == "pmse":
             # the grid's work decides the solver's backend, not one candidate's:
@@ -832,11 +855,15 @@ class _LocalModelCV(_BaseFRFEstimator):
         rank = np.empty(len(candidates), dtype=int)
         rank[order] = np.arange(1, len(candidates) + 1)
         best = int(order[0])
-        self.cv_results_ = self._results_dict(candidates, layouts, value, n_invalid,
-                                              rank)
+        # ranked (above) and identifiable on the normalised records; reported
+        # in the records' own units
+        self.cv_results_ = self._results_dict(
+            candidates, layouts, _in_record_units(value, criterion, y_exponent),
+            n_invalid, rank, identifiable=np.isfinite(value),
+        )
         self.best_index_ = best
         self.best_params_ = dict(candidates[best])
-        self.best_criterion_ = float(value[best])
+        self.best_criterion_ = float(self.cv_results_["criterion"][best])
         estimator = self._refit(params, candidates[best], u, y, F, sample_time)
         self.best_estimator_ = estimator
         for name, attr in vars(estimator).items():
@@ -856,7 +883,7 @@ class _LocalModelCV(_BaseFRFEstimator):
             per_bin = {i: _without_near(res.per_bin, near[i])
                        for i, res in zip(todo, results, strict=True)}
             self._fit_per_band(params, u, y, F, sample_time, candidates, layouts,
-                               per_bin, criterion)
+                               per_bin, criterion, y_exponent)
         return self
 
     def _fit_per_bin(self, params, u, y, F, sample_time, candidates,
@@ -893,7 +920,7 @@ class _LocalModelCV(_BaseFRFEstimator):
         self.band_weights_ = weights[used]
 
     def _fit_per_band(self, params, u, y, F, sample_time, candidates, layouts,
-                      per_bin, criterion) -> None:
+                      per_bin, criterion, y_exponent=0) -> None:
         """Choose a candidate per region of slow bins and blend their FRFs."""
         M = y.shape[-1]
         n_half = M // 2 + 1
@@ -928,7 +955,8 @@ class _LocalModelCV(_BaseFRFEstimator):
         self.band_frequencies_ = bounds / (self.n_samples_ * sample_time)
         self.band_params_ = [dict(candidates[i]) for i in chosen]
         self.band_index_ = np.array(chosen)
-        self.band_criterion_ = values[chosen, np.arange(R)]
+        self.band_criterion_ = _in_record_units(values[chosen, np.arange(R)],
+                                                criterion, y_exponent)
         self.band_estimators_ = [fitted[i] for i in chosen]
 
     def _refit(self, params, candidate, u, y, F, sample_time):
@@ -958,7 +986,8 @@ class _LocalModelCV(_BaseFRFEstimator):
         )
         return -self.best_criterion_
 
-    def _results_dict(self, candidates, layouts, value, n_invalid, rank) -> dict:
+    def _results_dict(self, candidates, layouts, value, n_invalid, rank, *,
+                      identifiable=None) -> dict:
         results = _CVResults(params=[dict(c) for c in candidates])
         for name in candidates[0]:
             results[f"param_{name}"] = np.array([c[name] for c in candidates])
@@ -966,7 +995,8 @@ class _LocalModelCV(_BaseFRFEstimator):
             [-1 if lay is None else lay.n_params for lay in layouts]
         )
         results["dof"] = np.array([-1 if lay is None else lay.dof for lay in layouts])
-        results["identifiable"] = np.isfinite(value)
+        results["identifiable"] = (np.isfinite(value) if identifiable is None
+                                   else identifiable)
         results["n_invalid_bins"] = n_invalid
         results["criterion"] = value
         results["rank"] = rank
@@ -1120,6 +1150,15 @@ class LRMBeyondNyquistCV(_LocalModelCV):
     ``GridSearchCV`` scored by held-out R^2 chose 1.15-1.32x (see the module
     notes). ``GridSearchCV(LRMBeyondNyquist(), grid, cv=KFold(...))`` needs
     several experiments and fails on one record in scikit-learn's length check.
+
+    As the estimators, the selection does not depend on the scale of ``u_h``
+    and ``y_l``: the candidates are scored on the records normalised by
+    exact powers of two (those outside ``2**-64 .. 2**64``), so any finite
+    scale gives the same ``best_params_``, ranking, band weights and FRF
+    (scaled back), bit for bit. ``cv_results_["criterion"]`` is reported in
+    the records' units (``"gcv"`` and ``"press"`` values beyond the float
+    range are inf or 0 there; ``identifiable`` and ``rank`` are those of the
+    normalised records).
 
     Examples
     --------
