@@ -377,3 +377,34 @@ def test_rank_deficiency_warning_counts_only_the_other_windows(plant, std_method
     near_fast = one_sided_fast_grid(np.repeat(near[:, None], F, axis=1), N, F,
                                     conj=False)
     assert n_fast == int(np.sum(~est.valid_[:, 0] & ~near_fast))
+
+
+@pytest.mark.parametrize("bands", [None, 2])
+def test_per_band_warns_about_the_blend_not_the_unused_candidates(plant, bands):
+    """With ``per_band=True`` the candidates are refitted; a candidate whose
+    windows are nearly dependent (half window 18 here: all 101) warned at
+    the refit although the blend gives it no weight and is valid everywhere
+    (measured in review). As the global CV, which warns about the refit it
+    returns only, the per-band CV warns about the FRF it returns: nothing
+    here; once (about the blend's invalid bins) where no candidate identifies
+    a bin."""
+    rng = np.random.default_rng(1)
+    u1 = _multisines(2, rng)
+    u = np.stack([u1, u1 + 1e-3 * rng.standard_normal(u1.shape)])
+    y = _outputs(plant, u)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        cv = LRMBeyondNyquistCV(half_windows=(18, 24), num_degrees=(4,),
+                                den_degrees=(7,), per_band=True,
+                                bands=bands).fit(u, y, F)
+    assert cv.valid_.all()
+    assert [p["half_window"] for p in cv.band_params_] == [24] * len(
+        cv.band_params_)
+    # every candidate nearly dependent: the blend's invalid bins, one warning
+    with pytest.warns(IdentifiabilityWarning) as record:
+        cv = LRMBeyondNyquistCV(half_windows=(12, 18), num_degrees=(4,),
+                                den_degrees=(7,), per_band=True,
+                                bands=bands).fit(u, y, F)
+    ours = [w for w in record if issubclass(w.category, IdentifiabilityWarning)]
+    assert len(ours) == 1 and not cv.valid_.any()
+    assert ours[0].filename == __file__

@@ -194,6 +194,7 @@ from .._validation import (
     check_records,
     check_sample_time,
 )
+from ..exceptions import IdentifiabilityWarning
 from ..local_models import (
     EXCITATION_TOL,
     OneSidedSpectra,
@@ -864,7 +865,11 @@ class _LocalModelCV(_BaseFRFEstimator):
         self.best_index_ = best
         self.best_params_ = dict(candidates[best])
         self.best_criterion_ = float(self.cv_results_["criterion"][best])
-        estimator = self._refit(params, candidates[best], u, y, F, sample_time)
+        # per band, the refits' warnings are held until the blend is known:
+        # the user sees those about the FRF returned (_warn_about_blend)
+        self._refit_warnings = {} if params.get("per_band") else None
+        estimator = self._refit(params, candidates[best], u, y, F, sample_time,
+                                index=best)
         self.best_estimator_ = estimator
         for name, attr in vars(estimator).items():
             if name.endswith("_") and not name.startswith("_"):
@@ -884,7 +889,44 @@ class _LocalModelCV(_BaseFRFEstimator):
                        for i, res in zip(todo, results, strict=True)}
             self._fit_per_band(params, u, y, F, sample_time, candidates, layouts,
                                per_bin, criterion, y_exponent)
+        if params.get("per_band"):
+            self._warn_about_blend()
+        vars(self).pop("_refit_warnings", None)
         return self
+
+    def _warn_about_blend(self) -> None:
+        """The warnings of a per-band fit, at the caller of ``fit``: those of
+        the refits with weight somewhere other than about identifiability,
+        once each, and one :class:`IdentifiabilityWarning` if the blended
+        FRF has invalid bins (the candidates' own identifiability warnings
+        count their invalid windows, where the blend gives them no weight or
+        takes another candidate: not the FRF returned)."""
+        caught = self._refit_warnings
+        used = [int(i) for i in self.band_index_]
+        seen = set()
+        for i in dict.fromkeys(used):
+            for w in caught.get(i, ()):
+                key = (w.category, str(w.message))
+                if issubclass(w.category, IdentifiabilityWarning) or key in seen:
+                    continue
+                seen.add(key)
+                warnings.warn(w.message, w.category, stacklevel=3)
+        valid = np.asarray(self.valid_)
+        K = valid.shape[-1]
+        bad = ~valid.reshape(-1, K).all(axis=0)
+        if not bad.any():
+            return
+        why = " ".join(str(w.message) for w in caught.get(self.best_index_, ())
+                       if issubclass(w.category, IdentifiabilityWarning))
+        warnings.warn(
+            f"{int(np.count_nonzero(bad))} of {K} fast bins of the per-band "
+            "frf_ are identified by no candidate with weight there: their FRF "
+            "is NaN and valid_ is False."
+            + (f" The fit of the best candidate {self.best_params_} says: {why}"
+               if why else ""),
+            IdentifiabilityWarning,
+            stacklevel=3,
+        )
 
     def _fit_per_bin(self, params, u, y, F, sample_time, candidates,
                      identifiable) -> None:
@@ -897,7 +939,7 @@ class _LocalModelCV(_BaseFRFEstimator):
         for i in progress(identifiable, enabled=params["verbose"], desc="refits"):
             if int(i) not in fitted:
                 fitted[int(i)] = self._refit(params, candidates[i], u, y, F,
-                                             sample_time)
+                                             sample_time, index=int(i))
         order = sorted(fitted)
         estimators = [fitted[i] for i in order]
         scores = _bands.std_scores(estimators, self.n_samples_, F)
@@ -944,7 +986,7 @@ class _LocalModelCV(_BaseFRFEstimator):
         for i in dict.fromkeys(chosen):
             if i not in fitted:
                 fitted[i] = self._refit(params, candidates[i], u, y, F,
-                                        sample_time)
+                                        sample_time, index=i)
         ramp = min(params["half_windows"])
         weights = _bands.region_weights(bounds, ramp)
         blended = _bands.blend([fitted[i] for i in chosen], weights,
@@ -959,12 +1001,21 @@ class _LocalModelCV(_BaseFRFEstimator):
                                                 criterion, y_exponent)
         self.band_estimators_ = [fitted[i] for i in chosen]
 
-    def _refit(self, params, candidate, u, y, F, sample_time):
+    def _refit(self, params, candidate, u, y, F, sample_time, *, index=None):
         """The base estimator with ``candidate`` (and the parameters this
-        class passes on, :meth:`_passed_on`), fitted on all records."""
+        class passes on, :meth:`_passed_on`), fitted on all records. In a
+        per-band fit its warnings are kept (``_refit_warnings[index]``) for
+        :meth:`_warn_about_blend`."""
         estimator = clone(self._base_class(**candidate, **self._passed_on(params)))
         # (P, n_u, N) and (P, n_y, M): P experiments, as the caller's records
-        return estimator.fit(u, y, F, sample_time=sample_time)
+        caught = getattr(self, "_refit_warnings", None)
+        if caught is None:
+            return estimator.fit(u, y, F, sample_time=sample_time)
+        with warnings.catch_warnings(record=True) as record:
+            warnings.simplefilter("always")
+            estimator.fit(u, y, F, sample_time=sample_time)
+        caught[index] = record
+        return estimator
 
     def _passed_on(self, params: dict) -> dict:
         """Parameters of the refitted estimator set by this class (none)."""
@@ -1081,7 +1132,12 @@ class LRMBeyondNyquistCV(_LocalModelCV):
         the number of equal regions, or the edges between regions as slow
         frequencies (the units of ``slow_frequencies_``: Hz with
         ``sample_time``), strictly between 0 and the slow Nyquist frequency.
-        Passing ``bands`` without ``per_band=True`` is an error.
+        Passing ``bands`` without ``per_band=True`` is an error. The
+        warnings are those of the FRF returned: the candidates' refits warn
+        only through the fits the blend uses, and invalid bins of the blend
+        give one :class:`~lrmfrf.IdentifiabilityWarning` (a candidate's
+        nearly dependent or rank-deficient windows where the blend takes
+        another candidate give none).
     std_method : str, default as :class:`LRMBeyondNyquist`
         How the refitted estimator computes ``frf_std_``
         (``LRMBeyondNyquist(std_method=...)``); it does not enter the
