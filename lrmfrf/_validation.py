@@ -300,62 +300,6 @@ def parse_record_set(x, name: str, *, purpose: str = "fitting"):
     return data[None], form, (2 if form == "2d" else 1,)
 
 
-def _aliased_rank(spectrum_of, experiments, n_inputs: int, N: int, F: int,
-                  n_bins: int = 256) -> int | None:
-    """The typical rank over slow bins of the experiments' aliased inputs.
-
-    ``spectrum_of(p)`` is experiment ``p``'s one-sided input DFT ``(n_u,
-    N//2+1)``. At slow bin ``k`` an experiment gives the vector of ``U(k +
-    f M)``, ``f < F``, of every input (each experiment scaled to a largest
-    vector norm of 1: amplitudes do not matter); the rank of the ``P x F
-    n_u`` matrix of these vectors is taken at up to ``n_bins`` bins spread
-    over ``0 .. M/2`` (singular values below ``1e-6`` of the bin's largest
-    count as zero), and the median is returned over the bins whose largest
-    singular value is above ``1e-6`` of the largest of all and which have at
-    least ``P`` excited entries (at the others an input that does not excite
-    every band would make different experiments look dependent; the fit
-    reports those bins itself) and at which every experiment has input (above
-    ``1e-6`` of its largest vector norm: experiments that excite interleaved
-    bins, e.g. zippered multisines, share no bin and are independent over a
-    window). None when no bin qualifies or an experiment has no input at
-    all.
-    """
-    M = N // F
-    K = M // 2 + 1
-    bins = np.unique(np.linspace(0, K - 1, min(K, n_bins)).round().astype(int))
-    fast = bins[:, None] + M * np.arange(F)[None, :]  # (bins, F)
-    mirrored = fast > N // 2  # the one-sided DFT holds their conjugates
-    source = np.where(mirrored, N - fast, fast)
-    vectors = np.empty((bins.size, len(experiments), n_inputs, F), dtype=complex)
-    for column, p in enumerate(experiments):
-        picked = np.asarray(spectrum_of(p))[:, source]  # (n_u, bins, F)
-        picked[:, mirrored] = picked[:, mirrored].conj()
-        vectors[:, column] = picked.transpose(1, 0, 2)
-    vectors = vectors.reshape(bins.size, len(experiments), n_inputs * F)
-    scale = np.max(np.linalg.norm(vectors, axis=2), axis=0)  # per experiment
-    if not np.all((scale > 0) & np.isfinite(scale)):
-        return None
-    vectors /= scale[None, :, None]
-    singular = np.linalg.svd(vectors, compute_uv=False)  # (bins, P), descending
-    largest = singular[:, 0]
-    # bins with input, and with at least P excited (band, input) entries: at
-    # the others even different experiments share a direction (an input
-    # without energy in some bands, which the fit reports per bin instead)
-    entries = np.linalg.norm(vectors, axis=1)  # (bins, F n_u)
-    excited_entries = np.sum(entries > 1e-6 * entries.max(axis=1, keepdims=True),
-                             axis=1)
-    # and at which every experiment has input: where one has none (inputs on
-    # interleaved bins, e.g. zippered multisines) the others' vectors say
-    # nothing of its dependence, and its windows see it independently
-    present = np.all(np.linalg.norm(vectors, axis=2) > 1e-6, axis=1)
-    usable = ((largest > 1e-6 * largest.max())
-              & (excited_entries >= len(experiments)) & present)
-    if not np.any(usable):
-        return None
-    ranks = np.sum(singular > 1e-6 * largest[:, None], axis=1)[usable]
-    return int(np.median(ranks))
-
-
 @dataclass(frozen=True)
 class Records:
     """Fast inputs and slow outputs of one or several experiments, parsed once.
@@ -450,7 +394,11 @@ class Records:
         """
         if self.n_experiments == 1:  # (an all-zero record: rank-deficient bins)
             return 1
-        from .local_models import power_of_two_exponent, scale_by_power_of_two
+        from .local_models import (
+            _aliased_rank,
+            power_of_two_exponent,
+            scale_by_power_of_two,
+        )
 
         rows = self.u.reshape(self.n_experiments, -1)
         # records far from unit amplitude (e.g. 1e-170 or 1e160, which the

@@ -21,6 +21,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy import fft as sp_fft
+from scipy.linalg import solve_toeplitz
 
 from ._blas_threads import blas_controller as _blas_controller  # noqa: F401 (as before)
 from ._blas_threads import single_threaded_blas as _single_threaded_blas
@@ -705,7 +706,13 @@ def nearly_dependent_windows(spectra: OneSidedSpectra, layout: LocalModelLayout,
     inputs and the overall levels of their bands do not matter, as they do
     not for the local problem. For two experiments the count is below two
     when the inputs differ from a multiple of each other by less than about
-    ``2 sqrt(tol)`` of their amplitude in the window.
+    ``2 sqrt(tol)`` of their amplitude in the window. An experiment that
+    replays another's (non-periodic) record with a delay of whole slow
+    samples (:func:`_delayed_copies`, to the same ``2 sqrt(tol)`` on the
+    samples they share) counts as no experiment in the windows where both
+    have input: the delay turns the phase across the window and
+    decorrelates the window sums, but at each bin the copy gives the
+    original's equations again.
 
     Nothing is computed (None) with one experiment or when one experiment
     gives a window enough equations (SISO and LPM at the default settings):
@@ -749,6 +756,10 @@ def nearly_dependent_windows(spectra: OneSidedSpectra, layout: LocalModelLayout,
     # not matter (the local problem is invariant to them)
     scale = np.sqrt(_inverse_band_energy(U, N, F))[:, :, None]  # (n_u, F, 1)
     pairs = [(p, q) for p in range(P) for q in range(p, P)]
+    # an experiment that replays another's record with a delay of whole slow
+    # samples adds no independent experiment in any window where both have
+    # input (its window sums decorrelate as the delay turns the phase)
+    copies = _delayed_copies(spectra, tol)
     flagged = np.zeros(B, dtype=bool)
     # windows in chunks: about 2**20 values (16 MiB) of the inputs at a time
     size = chunk_size or max(256, 2**20 // (P * n_u * F))
@@ -772,8 +783,176 @@ def nearly_dependent_windows(spectra: OneSidedSpectra, layout: LocalModelLayout,
         total = np.zeros((len(pairs), hi - lo + 1), dtype=complex)
         np.cumsum(per_bin, axis=1, out=total[:, 1:])
         sums = total[:, L:] - total[:, :-L]  # (pairs, stop - start)
-        flagged[start:stop] = _dependent_windows(sums, pairs, P, need, tol)
+        flagged[start:stop] = _dependent_windows(sums, pairs, P, need, tol,
+                                                 copies)
     return flagged
+
+
+#: Order of the linear-prediction filter that whitens the records before
+#: :func:`_delayed_copies` compares them.
+_WHITENING_ORDER = 16
+
+#: :func:`_delayed_copies` looks for delays of at most ``N // 8`` fast
+#: samples (copies sharing at least 7/8 of the record).
+_LONGEST_DELAY = 8
+
+
+def _delayed_copies(spectra: OneSidedSpectra, tol: float = NEAR_DEPENDENCE_TOL):
+    """Pairs ``(p, q)`` of experiments whose input records are, but for the
+    first or last ``d F`` fast samples, the same record delayed by ``d`` whole
+    slow samples (``0 < d F <= N / 8``; within about ``2 sqrt(tol)``, as the
+    near dependence).
+
+    At every slow bin such a copy's aliased input vector is the original's
+    times the phase ``exp(-2j pi k d / M)``, plus the leakage of the samples
+    only one of them holds, which is smooth over the bins and which the
+    transient absorbs: the copy gives the local problems the original's
+    equations again. The per-bin rank sees the leakage and the window sums
+    of :func:`nearly_dependent_windows` a phase that turns across the window,
+    so neither catches it. Per pair, the lag ``d F`` with the largest
+    cross-correlation of the records (their means removed and whitened by
+    one linear-prediction filter of their mean spectrum; from the one-sided
+    spectra) is found, and the records are compared on the samples they
+    share at that lag (at least 7/8): a pair is a copy when one differs
+    from a multiple of the other there by less than ``4 tol`` of its energy
+    (sine of their angle below ``2 sqrt(tol)``). A circular shift (zero mismatch on all samples) is refused before
+    (:meth:`lrmfrf._validation.Records.independent_experiments`); a shift by
+    ``d = 0`` is the near dependence of the window sums. Ordinary independent
+    excitations have a mismatch near 1 (above 0.84 for white noise,
+    multisines, orthogonal and zippered ones, short records; review30).
+    """
+    U = spectra.inputs
+    P, n_u = U.shape[:2]
+    N, F = spectra.n_samples, spectra.F
+    M = N // F
+    order = min(_WHITENING_ORDER, N // 8)
+    if P < 2 or M < 2 or order < 1:
+        return []
+    # Whitened by one FIR filter of the records' mean spectrum (linear
+    # prediction of order `order`): a component common to the experiments
+    # that dominates their energy (an offset, a periodic set-point, a
+    # resonance of a coloured excitation) must not make independent
+    # excitations look alike. Filtered circularly, a record's whitened
+    # values differ from the linear filter's in its first `order` samples
+    # only, which the comparison skips.
+    power = np.einsum("pij,pij->j", U.real, U.real) + np.einsum(
+        "pij,pij->j", U.imag, U.imag)
+    power[0] = 0.0  # the records' means
+    autocorrelation = sp_fft.irfft(power, n=N)[: order + 1]
+    if not autocorrelation[0] > 0.0:
+        return []
+    autocorrelation[0] *= 1.0 + 1e-9  # a floor: pure sines stay regular
+    predictor = solve_toeplitz(autocorrelation[:order], autocorrelation[1:])
+    whitening = sp_fft.rfft(np.concatenate([[1.0], -predictor]), n=N)
+    white = U * whitening
+    white[..., 0] = 0.0
+    # energies of the whitened records (Parseval on the one-sided spectra)
+    weights = np.full(white.shape[-1], 2.0)
+    weights[0] = 1.0
+    if N % 2 == 0:
+        weights[-1] = 1.0
+    energy = np.einsum("pij,j->p", white.real ** 2 + white.imag ** 2,
+                       weights) / N
+    records = {}
+
+    def record(p):  # (n_u, N), whitened
+        if p not in records:
+            records[p] = sp_fft.irfft(white[p], n=N, axis=-1)
+        return records[p]
+
+    # delays of at most N / _LONGEST_DELAY: a copy that shares less of the
+    # record brings enough of its own (1.1-2.6x the error of independent
+    # inputs at 1/8 and 1/4 of the record delayed; 1.5-12x at 0.5-10 %)
+    shift = np.arange(1, M) * F
+    lags = np.concatenate([shift[shift <= N // _LONGEST_DELAY],
+                           shift[shift >= N - N // _LONGEST_DELAY]])
+    if not lags.size:
+        return []
+    copies = []
+    for p in range(P):
+        for q in range(p + 1, P):
+            if not energy[p] * energy[q] > 0.0:
+                continue
+            cross = np.einsum("ij,ij->j", white[p], white[q].conj())
+            correlation = sp_fft.irfft(cross, n=N)[lags]  # sum_t u_p(t) u_q(t-lag)
+            peak = int(np.argmax(np.abs(correlation)))
+            # a copy sharing 7/8 of the samples correlates above about 7/8
+            # of the energy at its lag; independent records far below (the
+            # records are compared only above a quarter)
+            if abs(correlation[peak]) < 0.25 * np.sqrt(energy[p] * energy[q]):
+                continue
+            lag = int(lags[peak])
+            if lag <= N // 2:  # u_p(t) ~ u_q(t - lag), t >= lag
+                a = record(p)[:, lag + order:]
+                b = record(q)[:, order:N - lag]
+            else:  # u_q(t) ~ u_p(t - (N - lag))
+                a = record(q)[:, N - lag + order:]
+                b = record(p)[:, order:lag]
+            a = a - a.mean(axis=1, keepdims=True)
+            b = b - b.mean(axis=1, keepdims=True)
+            product = float(np.sum(a * a)) * float(np.sum(b * b))
+            if product <= 0.0:
+                continue
+            mismatch = 1.0 - float(np.sum(a * b)) ** 2 / product
+            if mismatch < 4.0 * tol:
+                copies.append((p, q))
+    return copies
+
+
+def _aliased_rank(spectrum_of, experiments, n_inputs: int, N: int, F: int,
+                  n_bins: int = 256) -> int | None:
+    """The typical rank over slow bins of the experiments' aliased inputs.
+
+    ``spectrum_of(p)`` is experiment ``p``'s one-sided input DFT ``(n_u,
+    N//2+1)``. At slow bin ``k`` an experiment gives the vector of ``U(k +
+    f M)``, ``f < F``, of every input (each experiment scaled to a largest
+    vector norm of 1: amplitudes do not matter); the rank of the ``P x F
+    n_u`` matrix of these vectors is taken at up to ``n_bins`` bins spread
+    over ``0 .. M/2`` (singular values below ``1e-6`` of the bin's largest
+    count as zero), and the median is returned over the bins whose largest
+    singular value is above ``1e-6`` of the largest of all and which have at
+    least ``P`` excited entries (at the others an input that does not excite
+    every band would make different experiments look dependent; the fit
+    reports those bins itself) and at which every experiment has input (above
+    ``1e-6`` of its largest vector norm: experiments that excite interleaved
+    bins, e.g. zippered multisines, share no bin and are independent over a
+    window). None when no bin qualifies or an experiment has no input at
+    all.
+    """
+    M = N // F
+    K = M // 2 + 1
+    bins = np.unique(np.linspace(0, K - 1, min(K, n_bins)).round().astype(int))
+    fast = bins[:, None] + M * np.arange(F)[None, :]  # (bins, F)
+    mirrored = fast > N // 2  # the one-sided DFT holds their conjugates
+    source = np.where(mirrored, N - fast, fast)
+    vectors = np.empty((bins.size, len(experiments), n_inputs, F), dtype=complex)
+    for column, p in enumerate(experiments):
+        picked = np.asarray(spectrum_of(p))[:, source]  # (n_u, bins, F)
+        picked[:, mirrored] = picked[:, mirrored].conj()
+        vectors[:, column] = picked.transpose(1, 0, 2)
+    vectors = vectors.reshape(bins.size, len(experiments), n_inputs * F)
+    scale = np.max(np.linalg.norm(vectors, axis=2), axis=0)  # per experiment
+    if not np.all((scale > 0) & np.isfinite(scale)):
+        return None
+    vectors /= scale[None, :, None]
+    singular = np.linalg.svd(vectors, compute_uv=False)  # (bins, P), descending
+    largest = singular[:, 0]
+    # bins with input, and with at least P excited (band, input) entries: at
+    # the others even different experiments share a direction (an input
+    # without energy in some bands, which the fit reports per bin instead)
+    entries = np.linalg.norm(vectors, axis=1)  # (bins, F n_u)
+    excited_entries = np.sum(entries > 1e-6 * entries.max(axis=1, keepdims=True),
+                             axis=1)
+    # and at which every experiment has input: where one has none (inputs on
+    # interleaved bins, e.g. zippered multisines) the others' vectors say
+    # nothing of its dependence, and its windows see it independently
+    present = np.all(np.linalg.norm(vectors, axis=2) > 1e-6, axis=1)
+    usable = ((largest > 1e-6 * largest.max())
+              & (excited_entries >= len(experiments)) & present)
+    if not np.any(usable):
+        return None
+    ranks = np.sum(singular > 1e-6 * largest[:, None], axis=1)[usable]
+    return int(np.median(ranks))
 
 
 def _inverse_band_energy(U, N, F):
@@ -798,10 +977,13 @@ def _inverse_band_energy(U, N, F):
     return inverse
 
 
-def _dependent_windows(sums, pairs, P, need, tol):
+def _dependent_windows(sums, pairs, P, need, tol, copies=()):
     """From the window sums of the scaled ``U_p conj(U_q)`` (one row per pair
     of ``pairs``): the windows with fewer than ``need`` eigenvalues of the
-    experiments' normalised Gram matrix above ``tol`` times the largest."""
+    experiments' normalised Gram matrix above ``tol`` times the largest,
+    less one per delayed copy ``(p, q)`` of ``copies``
+    (:func:`_delayed_copies`) whose two experiments have input in the
+    window (a copy of a copy counted once)."""
     B = sums.shape[1]
     # normalised to unit energy per experiment and window (1-D arrays over
     # the windows: the P x P matrices are built only where the bound fails)
@@ -820,6 +1002,16 @@ def _dependent_windows(sums, pairs, P, need, tol):
     radius = rows.max(axis=0)
     clear = present.all(axis=0) & (1 - radius > tol * (1 + radius))
     flagged = np.zeros(B, dtype=bool)
+    repeats = 0  # per window, the copies of an experiment counted already
+    if copies:
+        repeats = np.zeros(B, dtype=int)
+        copied = set()
+        for p, q in copies:
+            if q not in copied:
+                copied.add(q)
+                repeats += present[p] & present[q]
+        flagged[clear] = P - repeats[clear] < need
+        repeats = repeats[~clear & present.any(axis=0)]
     check = np.flatnonzero(~clear & present.any(axis=0))
     if check.size:
         gram = np.empty((check.size, P, P), dtype=complex)
@@ -828,7 +1020,7 @@ def _dependent_windows(sums, pairs, P, need, tol):
             gram[:, q, p] = np.conj(gram[:, p, q])
         eig = np.linalg.eigvalsh(gram)  # ascending
         count = np.sum(eig > tol * eig[:, -1:], axis=1)
-        flagged[check] = count < need
+        flagged[check] = count - repeats < need
     return flagged
 
 

@@ -833,3 +833,42 @@ def test_pmse_grid_on_the_compiled_kernel_selects_as_numpy(monkeypatch):
     np.testing.assert_array_equal(np.isfinite(criterion), np.isfinite(want))
     finite = np.isfinite(want)
     np.testing.assert_allclose(criterion[finite], want[finite], rtol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "cls, kwargs",
+    [
+        (LRMBeyondNyquistCV, {**SMALL_GRID, "criterion": "pmse"}),
+        (LRMBeyondNyquistCV, {**SMALL_GRID, "criterion": "gaic"}),
+        (LRMBeyondNyquistCV, {**SMALL_GRID, "per_band": True}),
+        (LRMBeyondNyquistCV, {**SMALL_GRID, "per_band": True, "bands": 2,
+                              "criterion": "gcv"}),
+        (LPMBeyondNyquistCV, {"half_windows": (8, 12), "num_degrees": (1, 2)}),
+    ],
+)
+def test_cv_is_scale_invariant(cls, kwargs):
+    """As the estimators (README: any finite scale of ``u_h`` and ``y_l``;
+    records outside 2**-64..2**64 normalised by exact powers of two), the CV
+    classes choose the same candidates, rank them alike and give the same FRF
+    scaled back, bit for bit, at any scale of the input and the output (the
+    criterion of records at 2**600 once overflowed to inf: "no candidate
+    identifiable"), and leave the caller's arrays alone."""
+    rng = np.random.default_rng(3)
+    u, y = _data(rng, P=2)
+    ref = cls(**kwargs).fit(u, y, F)
+    for su, sy in [(-600, -600), (600, 600), (-100, -100), (-600, -300),
+                   (100, 400), (0, 600)]:
+        us, ys = u * 2.0**su, y * 2.0**sy
+        copies = us.copy(), ys.copy()
+        est = cls(**kwargs).fit(us, ys, F)
+        np.testing.assert_array_equal(us, copies[0])
+        np.testing.assert_array_equal(ys, copies[1])
+        assert est.best_params_ == ref.best_params_
+        np.testing.assert_array_equal(est.cv_results_["rank"],
+                                      ref.cv_results_["rank"])
+        np.testing.assert_array_equal(est.cv_results_["identifiable"],
+                                      ref.cv_results_["identifiable"])
+        np.testing.assert_array_equal(est.frf_ * 2.0 ** (su - sy), ref.frf_)
+        np.testing.assert_array_equal(est.valid_, ref.valid_)
+        if "band_params_" in vars(ref):
+            assert est.band_params_ == ref.band_params_

@@ -28,7 +28,7 @@ import numbers
 
 import numpy as np
 
-from ..local_models import one_sided_fast_grid
+from ..local_models import one_sided_fast_grid, scale_by_power_of_two
 
 #: Per-slow-bin choice (``bands=None``): scores averaged over ``2 h + 1`` slow
 #: bins and weights ``exp(-beta (score - best))``. Chosen on the cluster
@@ -135,8 +135,11 @@ def to_fast_grid(slow_values: np.ndarray, n_samples: int, F: int) -> np.ndarray:
 
 def std_scores(estimators, n_samples: int, F: int) -> np.ndarray:
     """Score ``(C, M//2+1)`` of each fit at each slow bin: the mean of
-    ``log frf_std_`` over the fast bins aliasing onto the bin (and over the
-    entries of an FRF matrix); ``inf`` where any of them is not valid."""
+    ``log(frf_std_ / 2**e)`` over the fast bins aliasing onto the bin (and
+    over the entries of an FRF matrix), ``e`` the binary exponent of the
+    largest valid std of all fits (a shift common to all scores, which makes
+    them the same at any scale of the records); ``inf`` where any of them is
+    not valid."""
     M = n_samples // F
     j = np.arange(n_samples // 2 + 1)
     k = j % M
@@ -144,9 +147,21 @@ def std_scores(estimators, n_samples: int, F: int) -> np.ndarray:
     n_half = M // 2 + 1
     counts = np.bincount(slow, minlength=n_half)
     out = np.empty((len(estimators), n_half))
+    # the logs of std / 2**e, e the binary exponent of the largest valid std
+    # of all fits: the scores, and so the weights, are then the same bit for
+    # bit at any scale of the records (a log of the std itself shifts every
+    # score by a constant, which rounds their differences differently)
+    peak = 0.0
+    for est in estimators:
+        std = np.asarray(est.frf_std_, dtype=float)
+        good = np.asarray(est.valid_) & np.isfinite(std)
+        if good.any():
+            peak = max(peak, float(np.max(std[good])))
+    exponent = int(np.frexp(peak)[1]) if peak > 0.0 else 0
     for c, est in enumerate(estimators):
         std = np.asarray(est.frf_std_, dtype=float)
         good = np.asarray(est.valid_) & np.isfinite(std) & (std > 0)
+        std = scale_by_power_of_two(std, -exponent)
         with np.errstate(divide="ignore", invalid="ignore"):
             log_std = np.where(good, np.log(np.where(good, std, 1.0)), np.inf)
         log_std = log_std.reshape(-1, log_std.shape[-1]).mean(axis=0)  # entries
@@ -217,10 +232,14 @@ def blend(estimators, weights: np.ndarray, n_samples: int, F: int) -> dict:
     for est, w, w_slow in zip(estimators, fast_w, weights, strict=True):
         used = w > 0
         valid &= ~used | est.valid_
-        frf = frf + np.where(used, w * est.frf_, 0.0)
-        std = std + np.where(used, w * est.frf_std_, 0.0)
-        cov = cov + np.where(used, w * est.frf_cov_, 0.0)
-        noise = noise + np.where(w_slow > 0, w_slow * est.noise_variance_, 0.0)
+        # (0 * inf where a weight is 0 and a variance beyond the float range,
+        # e.g. records at 2**600: dropped by the where)
+        with np.errstate(invalid="ignore"):
+            frf = frf + np.where(used, w * est.frf_, 0.0)
+            std = std + np.where(used, w * est.frf_std_, 0.0)
+            cov = cov + np.where(used, w * est.frf_cov_, 0.0)
+            noise = noise + np.where(w_slow > 0, w_slow * est.noise_variance_,
+                                     0.0)
     frf = np.where(valid, frf, np.nan)
     std = np.where(valid, std, np.nan)
     noise = np.where(np.all(np.isfinite(weights), axis=0), noise, np.nan)

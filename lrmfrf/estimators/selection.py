@@ -194,6 +194,7 @@ from .._validation import (
     check_records,
     check_sample_time,
 )
+from ..exceptions import IdentifiabilityWarning
 from ..local_models import (
     EXCITATION_TOL,
     OneSidedSpectra,
@@ -377,6 +378,22 @@ def _combine(per_bin, well_posed, layout, criterion, n_slow) -> float:
         log_mean = float(np.sum(w * np.log(values)) / w.sum())
         return log_mean + GAIC_PENALTY * p / (L - p - 1)
     return mean
+
+
+def _in_record_units(values, criterion: str, y_exponent: int):
+    """Criterion values of records normalised by ``2**-y_exponent`` (the
+    outputs; the inputs' scale does not enter a residual) in the records' own
+    units: ``"pmse"`` is relative (unchanged), ``"aicc"`` and ``"gaic"`` are
+    logs of a squared output (``+ 2 y_exponent log 2``), ``"gcv"`` and
+    ``"press"`` squared outputs (``* 4**y_exponent``, exact; beyond the float
+    range they are inf or 0 as the estimators' variances). ``values``
+    itself when ``y_exponent == 0``."""
+    if y_exponent == 0 or criterion == "pmse":
+        return values
+    values = np.asarray(values, dtype=float)
+    if criterion in ("aicc", "gaic"):
+        return values + 2 * y_exponent * np.log(2.0)
+    return scale_by_power_of_two(values, 2 * y_exponent)
 
 
 def _pmse_ingredients(U, Y, layout, *, chunk_size=None, backend="auto"):
@@ -782,8 +799,15 @@ class _LocalModelCV(_BaseFRFEstimator):
                 "half_windows (each needs P*(2n+1) > (R_g+1) F n_u + P(R_t+1) + "
                 "R_e and 2n+1 <= M)."
             )
-        U = dft(u).reshape(P, n_u * N)  # inputs concatenated
-        Y = dft(y)[:, 0] if y.shape[1] == 1 else dft(y)  # (P, M) or (P, n_y, M)
+        # The criteria are scored on the records normalised by powers of two,
+        # as the estimators fit them (exact; ordinary records untouched): the
+        # residuals of records at 2**600 overflow in their own units, those of
+        # records at 2**-600 underflow. Temporaries, not the caller's arrays.
+        u_exponent = power_of_two_exponent(u)
+        y_exponent = power_of_two_exponent(y)
+        U = dft(scale_by_power_of_two(u, -u_exponent)).reshape(P, n_u * N)
+        Y = dft(scale_by_power_of_two(y, -y_exponent))
+        Y = Y[:, 0] if y.shape[1] == 1 else Y  # (P, M) or (P, n_y, M)
         todo = [i for i, layout in enumerate(layouts) if layout is not None]
         if criterion == "pmse":
             # the grid's work decides the solver's backend, not one candidate's:
@@ -832,12 +856,20 @@ class _LocalModelCV(_BaseFRFEstimator):
         rank = np.empty(len(candidates), dtype=int)
         rank[order] = np.arange(1, len(candidates) + 1)
         best = int(order[0])
-        self.cv_results_ = self._results_dict(candidates, layouts, value, n_invalid,
-                                              rank)
+        # ranked (above) and identifiable on the normalised records; reported
+        # in the records' own units
+        self.cv_results_ = self._results_dict(
+            candidates, layouts, _in_record_units(value, criterion, y_exponent),
+            n_invalid, rank, identifiable=np.isfinite(value),
+        )
         self.best_index_ = best
         self.best_params_ = dict(candidates[best])
-        self.best_criterion_ = float(value[best])
-        estimator = self._refit(params, candidates[best], u, y, F, sample_time)
+        self.best_criterion_ = float(self.cv_results_["criterion"][best])
+        # per band, the refits' warnings are held until the blend is known:
+        # the user sees those about the FRF returned (_warn_about_blend)
+        self._refit_warnings = {} if params.get("per_band") else None
+        estimator = self._refit(params, candidates[best], u, y, F, sample_time,
+                                index=best)
         self.best_estimator_ = estimator
         for name, attr in vars(estimator).items():
             if name.endswith("_") and not name.startswith("_"):
@@ -856,8 +888,45 @@ class _LocalModelCV(_BaseFRFEstimator):
             per_bin = {i: _without_near(res.per_bin, near[i])
                        for i, res in zip(todo, results, strict=True)}
             self._fit_per_band(params, u, y, F, sample_time, candidates, layouts,
-                               per_bin, criterion)
+                               per_bin, criterion, y_exponent)
+        if params.get("per_band"):
+            self._warn_about_blend()
+        vars(self).pop("_refit_warnings", None)
         return self
+
+    def _warn_about_blend(self) -> None:
+        """The warnings of a per-band fit, at the caller of ``fit``: those of
+        the refits with weight somewhere other than about identifiability,
+        once each, and one :class:`IdentifiabilityWarning` if the blended
+        FRF has invalid bins (the candidates' own identifiability warnings
+        count their invalid windows, where the blend gives them no weight or
+        takes another candidate: not the FRF returned)."""
+        caught = self._refit_warnings
+        used = [int(i) for i in self.band_index_]
+        seen = set()
+        for i in dict.fromkeys(used):
+            for w in caught.get(i, ()):
+                key = (w.category, str(w.message))
+                if issubclass(w.category, IdentifiabilityWarning) or key in seen:
+                    continue
+                seen.add(key)
+                warnings.warn(w.message, w.category, stacklevel=3)
+        valid = np.asarray(self.valid_)
+        K = valid.shape[-1]
+        bad = ~valid.reshape(-1, K).all(axis=0)
+        if not bad.any():
+            return
+        why = " ".join(str(w.message) for w in caught.get(self.best_index_, ())
+                       if issubclass(w.category, IdentifiabilityWarning))
+        warnings.warn(
+            f"{int(np.count_nonzero(bad))} of {K} fast bins of the per-band "
+            "frf_ are identified by no candidate with weight there: their FRF "
+            "is NaN and valid_ is False."
+            + (f" The fit of the best candidate {self.best_params_} says: {why}"
+               if why else ""),
+            IdentifiabilityWarning,
+            stacklevel=3,
+        )
 
     def _fit_per_bin(self, params, u, y, F, sample_time, candidates,
                      identifiable) -> None:
@@ -870,7 +939,7 @@ class _LocalModelCV(_BaseFRFEstimator):
         for i in progress(identifiable, enabled=params["verbose"], desc="refits"):
             if int(i) not in fitted:
                 fitted[int(i)] = self._refit(params, candidates[i], u, y, F,
-                                             sample_time)
+                                             sample_time, index=int(i))
         order = sorted(fitted)
         estimators = [fitted[i] for i in order]
         scores = _bands.std_scores(estimators, self.n_samples_, F)
@@ -893,7 +962,7 @@ class _LocalModelCV(_BaseFRFEstimator):
         self.band_weights_ = weights[used]
 
     def _fit_per_band(self, params, u, y, F, sample_time, candidates, layouts,
-                      per_bin, criterion) -> None:
+                      per_bin, criterion, y_exponent=0) -> None:
         """Choose a candidate per region of slow bins and blend their FRFs."""
         M = y.shape[-1]
         n_half = M // 2 + 1
@@ -917,7 +986,7 @@ class _LocalModelCV(_BaseFRFEstimator):
         for i in dict.fromkeys(chosen):
             if i not in fitted:
                 fitted[i] = self._refit(params, candidates[i], u, y, F,
-                                        sample_time)
+                                        sample_time, index=i)
         ramp = min(params["half_windows"])
         weights = _bands.region_weights(bounds, ramp)
         blended = _bands.blend([fitted[i] for i in chosen], weights,
@@ -928,15 +997,25 @@ class _LocalModelCV(_BaseFRFEstimator):
         self.band_frequencies_ = bounds / (self.n_samples_ * sample_time)
         self.band_params_ = [dict(candidates[i]) for i in chosen]
         self.band_index_ = np.array(chosen)
-        self.band_criterion_ = values[chosen, np.arange(R)]
+        self.band_criterion_ = _in_record_units(values[chosen, np.arange(R)],
+                                                criterion, y_exponent)
         self.band_estimators_ = [fitted[i] for i in chosen]
 
-    def _refit(self, params, candidate, u, y, F, sample_time):
+    def _refit(self, params, candidate, u, y, F, sample_time, *, index=None):
         """The base estimator with ``candidate`` (and the parameters this
-        class passes on, :meth:`_passed_on`), fitted on all records."""
+        class passes on, :meth:`_passed_on`), fitted on all records. In a
+        per-band fit its warnings are kept (``_refit_warnings[index]``) for
+        :meth:`_warn_about_blend`."""
         estimator = clone(self._base_class(**candidate, **self._passed_on(params)))
         # (P, n_u, N) and (P, n_y, M): P experiments, as the caller's records
-        return estimator.fit(u, y, F, sample_time=sample_time)
+        caught = getattr(self, "_refit_warnings", None)
+        if caught is None:
+            return estimator.fit(u, y, F, sample_time=sample_time)
+        with warnings.catch_warnings(record=True) as record:
+            warnings.simplefilter("always")
+            estimator.fit(u, y, F, sample_time=sample_time)
+        caught[index] = record
+        return estimator
 
     def _passed_on(self, params: dict) -> dict:
         """Parameters of the refitted estimator set by this class (none)."""
@@ -958,7 +1037,8 @@ class _LocalModelCV(_BaseFRFEstimator):
         )
         return -self.best_criterion_
 
-    def _results_dict(self, candidates, layouts, value, n_invalid, rank) -> dict:
+    def _results_dict(self, candidates, layouts, value, n_invalid, rank, *,
+                      identifiable=None) -> dict:
         results = _CVResults(params=[dict(c) for c in candidates])
         for name in candidates[0]:
             results[f"param_{name}"] = np.array([c[name] for c in candidates])
@@ -966,7 +1046,8 @@ class _LocalModelCV(_BaseFRFEstimator):
             [-1 if lay is None else lay.n_params for lay in layouts]
         )
         results["dof"] = np.array([-1 if lay is None else lay.dof for lay in layouts])
-        results["identifiable"] = np.isfinite(value)
+        results["identifiable"] = (np.isfinite(value) if identifiable is None
+                                   else identifiable)
         results["n_invalid_bins"] = n_invalid
         results["criterion"] = value
         results["rank"] = rank
@@ -1051,7 +1132,12 @@ class LRMBeyondNyquistCV(_LocalModelCV):
         the number of equal regions, or the edges between regions as slow
         frequencies (the units of ``slow_frequencies_``: Hz with
         ``sample_time``), strictly between 0 and the slow Nyquist frequency.
-        Passing ``bands`` without ``per_band=True`` is an error.
+        Passing ``bands`` without ``per_band=True`` is an error. The
+        warnings are those of the FRF returned: the candidates' refits warn
+        only through the fits the blend uses, and invalid bins of the blend
+        give one :class:`~lrmfrf.IdentifiabilityWarning` (a candidate's
+        nearly dependent or rank-deficient windows where the blend takes
+        another candidate give none).
     std_method : str, default as :class:`LRMBeyondNyquist`
         How the refitted estimator computes ``frf_std_``
         (``LRMBeyondNyquist(std_method=...)``); it does not enter the
@@ -1120,6 +1206,15 @@ class LRMBeyondNyquistCV(_LocalModelCV):
     ``GridSearchCV`` scored by held-out R^2 chose 1.15-1.32x (see the module
     notes). ``GridSearchCV(LRMBeyondNyquist(), grid, cv=KFold(...))`` needs
     several experiments and fails on one record in scikit-learn's length check.
+
+    As the estimators, the selection does not depend on the scale of ``u_h``
+    and ``y_l``: the candidates are scored on the records normalised by
+    exact powers of two (those outside ``2**-64 .. 2**64``), so any finite
+    scale gives the same ``best_params_``, ranking, band weights and FRF
+    (scaled back), bit for bit. ``cv_results_["criterion"]`` is reported in
+    the records' units (``"gcv"`` and ``"press"`` values beyond the float
+    range are inf or 0 there; ``identifiable`` and ``rank`` are those of the
+    normalised records).
 
     Examples
     --------
