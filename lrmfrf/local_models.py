@@ -772,11 +772,11 @@ def nearly_dependent_windows(spectra: OneSidedSpectra, layout: LocalModelLayout,
         values *= scale
         # per slow bin, the sums over inputs and bands of U_p conj(U_q)
         per_bin = np.empty((len(pairs), hi - lo), dtype=complex)
+        parts = values.view(np.float64)  # real and imaginary parts, interleaved
         for s, (p, q) in enumerate(pairs):
-            if p == q:  # real: from the real and imaginary parts (views)
-                per_bin[s] = (np.einsum("ifw,ifw->w", values[p].real, values[p].real)
-                              + np.einsum("ifw,ifw->w", values[p].imag,
-                                          values[p].imag))
+            if p == q:  # real: the sums of the squared real and imaginary parts
+                squares = np.einsum("ifw,ifw->w", parts[p], parts[p])
+                per_bin[s] = squares[0::2] + squares[1::2]
             else:
                 np.einsum("ifw,ifw->w", values[p], values[q].conj(), out=per_bin[s])
         del values
