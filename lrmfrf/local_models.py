@@ -718,9 +718,10 @@ def nearly_dependent_windows(spectra: OneSidedSpectra, layout: LocalModelLayout,
     gives a window enough equations (SISO and LPM at the default settings):
     near dependence then only averages the noise. Otherwise the cost is a
     few passes over the input spectra, windows in chunks of bounded memory
-    (3.0-3.8 ms for 2 x 2, P = 2, N = 1.2e5, about 0.4 % of the fit), and a
-    Gershgorin bound per window; the eigenvalues are computed only at
-    windows the bound does not clear.
+    (about 3 ms for 2 x 2, P = 2, N = 1.2e5, plus about 4 ms of
+    :func:`_delayed_copies`; under 1 % of the fit), and a Gershgorin bound
+    per window; the eigenvalues are computed only at windows the bound does
+    not clear.
 
     Parameters
     ----------

@@ -1135,7 +1135,9 @@ def experiment_noise_levels(spectra, layout: LocalModelLayout, *,
     sigma^2``). Each window is normalised by its own pooled level (the
     noise spectrum may be coloured; a frequency-independent ratio between
     the experiments is assumed) and the linear equations for ``c``, summed
-    over the windows, are solved.
+    over the windows, are solved. The columns the output rows share (system
+    and transient) are factored once per weighting, each row adds its
+    denominator columns (about 7-9 ms for 2 x 2, P = 2, 16 windows).
 
     Parameters
     ----------
