@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy import fft as sp_fft
+from scipy.signal import lfilter
 
 from lrmfrf.local_models import OneSidedSpectra, _correlation_at_multiples
 from lrmfrf.solvers import RANK_TOL
@@ -22,7 +23,8 @@ def test_correlation_at_multiples_is_the_full_transform(N, F):
     cross = rng.standard_normal(N // 2 + 1) + 1j * rng.standard_normal(N // 2 + 1)
     direct = sp_fft.irfft(cross, n=N)[::F][: N // F]
     folded = _correlation_at_multiples(cross, N, F)[: N // F]
-    np.testing.assert_allclose(folded, direct, rtol=0, atol=1e-14 * np.abs(direct).max())
+    np.testing.assert_allclose(folded, direct, rtol=0,
+                               atol=1e-14 * np.abs(direct).max())
 
 
 def _levels_direct(spectra, layout, weights=None, max_windows=16):
@@ -31,7 +33,8 @@ def _levels_direct(spectra, layout, weights=None, max_windows=16):
     n, L, M = layout.half_window, layout.window, spectra.n_slow
     centres = np.arange(n + 1, M // 2 - n, L)
     if centres.size > max_windows:
-        centres = centres[np.linspace(0, centres.size - 1, max_windows).round().astype(int)]
+        pick = np.linspace(0, centres.size - 1, max_windows).round().astype(int)
+        centres = centres[pick]
     ratio, dof = np.ones((P, n_y)), np.zeros((P, n_y))
     _, x = window_offsets(n)
     for o in range(n_y):
@@ -64,7 +67,8 @@ def _levels_direct(spectra, layout, weights=None, max_windows=16):
                             (energy / level[:, None]).sum(axis=0), rcond=None)[0]
         r = np.maximum(r, 1e-3 * r.max())
         r /= r.mean()
-        expected = (np.array(ws) * np.array(diags)).reshape(-1, P, L) / level[:, None, None]
+        expected = ((np.array(ws) * np.array(diags)).reshape(-1, P, L)
+                    / level[:, None, None])
         dof[:, o] = expected.sum(axis=(0, 2)) ** 2 / (expected**2).sum(axis=(0, 2))
         ratio[:, o] = r
         if weights is not None:
@@ -80,7 +84,6 @@ def test_noise_levels_match_their_definition(P, n_u, n_y, den_degree, weighted):
     F, M = 3, 400
     rng = np.random.default_rng(P * 100 + n_u * 10 + n_y + den_degree)
     u = rng.standard_normal((P, n_u, F * M))
-    from scipy.signal import lfilter
     y = np.zeros((P, n_y, F * M))
     for o in range(n_y):
         for i in range(n_u):
