@@ -718,9 +718,10 @@ def nearly_dependent_windows(spectra: OneSidedSpectra, layout: LocalModelLayout,
     gives a window enough equations (SISO and LPM at the default settings):
     near dependence then only averages the noise. Otherwise the cost is a
     few passes over the input spectra, windows in chunks of bounded memory
-    (3.0-3.8 ms for 2 x 2, P = 2, N = 1.2e5, about 0.4 % of the fit), and a
-    Gershgorin bound per window; the eigenvalues are computed only at
-    windows the bound does not clear.
+    (about 3 ms for 2 x 2, P = 2, N = 1.2e5, plus about 4 ms of
+    :func:`_delayed_copies`; under 1 % of the fit), and a Gershgorin bound
+    per window; the eigenvalues are computed only at windows the bound does
+    not clear.
 
     Parameters
     ----------
@@ -772,11 +773,11 @@ def nearly_dependent_windows(spectra: OneSidedSpectra, layout: LocalModelLayout,
         values *= scale
         # per slow bin, the sums over inputs and bands of U_p conj(U_q)
         per_bin = np.empty((len(pairs), hi - lo), dtype=complex)
+        parts = values.view(np.float64)  # real and imaginary parts, interleaved
         for s, (p, q) in enumerate(pairs):
-            if p == q:  # real: from the real and imaginary parts (views)
-                per_bin[s] = (np.einsum("ifw,ifw->w", values[p].real, values[p].real)
-                              + np.einsum("ifw,ifw->w", values[p].imag,
-                                          values[p].imag))
+            if p == q:  # real: the sums of the squared real and imaginary parts
+                squares = np.einsum("ifw,ifw->w", parts[p], parts[p])
+                per_bin[s] = squares[0::2] + squares[1::2]
             else:
                 np.einsum("ifw,ifw->w", values[p], values[q].conj(), out=per_bin[s])
         del values
@@ -820,6 +821,12 @@ def _delayed_copies(spectra: OneSidedSpectra, tol: float = NEAR_DEPENDENCE_TOL):
     ``d = 0`` is the near dependence of the window sums. Ordinary independent
     excitations have a mismatch near 1 (above 0.84 for white noise,
     multisines, orthogonal and zippered ones, short records; review30).
+
+    Cost (2 x 2, P = 2, N = 1.2e5): two transforms of length ``N`` (the
+    autocorrelation and the filter's gain), per pair one pass over the
+    spectra and one transform of length ``M`` (the correlation at the lags,
+    all multiples of ``F``); the whitened records only for the pairs
+    compared. About 4 ms.
     """
     U = spectra.inputs
     P, n_u = U.shape[:2]
@@ -828,38 +835,6 @@ def _delayed_copies(spectra: OneSidedSpectra, tol: float = NEAR_DEPENDENCE_TOL):
     order = min(_WHITENING_ORDER, N // 8)
     if P < 2 or M < 2 or order < 1:
         return []
-    # Whitened by one FIR filter of the records' mean spectrum (linear
-    # prediction of order `order`): a component common to the experiments
-    # that dominates their energy (an offset, a periodic set-point, a
-    # resonance of a coloured excitation) must not make independent
-    # excitations look alike. Filtered circularly, a record's whitened
-    # values differ from the linear filter's in its first `order` samples
-    # only, which the comparison skips.
-    power = np.einsum("pij,pij->j", U.real, U.real) + np.einsum(
-        "pij,pij->j", U.imag, U.imag)
-    power[0] = 0.0  # the records' means
-    autocorrelation = sp_fft.irfft(power, n=N)[: order + 1]
-    if not autocorrelation[0] > 0.0:
-        return []
-    autocorrelation[0] *= 1.0 + 1e-9  # a floor: pure sines stay regular
-    predictor = solve_toeplitz(autocorrelation[:order], autocorrelation[1:])
-    whitening = sp_fft.rfft(np.concatenate([[1.0], -predictor]), n=N)
-    white = U * whitening
-    white[..., 0] = 0.0
-    # energies of the whitened records (Parseval on the one-sided spectra)
-    weights = np.full(white.shape[-1], 2.0)
-    weights[0] = 1.0
-    if N % 2 == 0:
-        weights[-1] = 1.0
-    energy = np.einsum("pij,j->p", white.real ** 2 + white.imag ** 2,
-                       weights) / N
-    records = {}
-
-    def record(p):  # (n_u, N), whitened
-        if p not in records:
-            records[p] = sp_fft.irfft(white[p], n=N, axis=-1)
-        return records[p]
-
     # delays of at most N / _LONGEST_DELAY: a copy that shares less of the
     # record brings enough of its own (1.1-2.6x the error of independent
     # inputs at 1/8 and 1/4 of the record delayed; 1.5-12x at 0.5-10 %)
@@ -868,13 +843,54 @@ def _delayed_copies(spectra: OneSidedSpectra, tol: float = NEAR_DEPENDENCE_TOL):
                            shift[shift >= N - N // _LONGEST_DELAY]])
     if not lags.size:
         return []
+    # each experiment's power spectrum (summed over the inputs)
+    parts = np.ascontiguousarray(U).view(np.float64)  # real, imaginary
+    squares = np.einsum("pij,pij->pj", parts, parts)
+    power = squares[:, 0::2] + squares[:, 1::2]  # (P, N//2+1)
+    # Whitened by one FIR filter of the records' mean spectrum (linear
+    # prediction of order `order`): a component common to the experiments
+    # that dominates their energy (an offset, a periodic set-point, a
+    # resonance of a coloured excitation) must not make independent
+    # excitations look alike. Filtered circularly, a record's whitened
+    # values differ from the linear filter's in its first `order` samples
+    # only, which the comparison skips.
+    total = power.sum(axis=0)
+    total[0] = 0.0  # the records' means
+    autocorrelation = sp_fft.irfft(total, n=N)[: order + 1]
+    if not autocorrelation[0] > 0.0:
+        return []
+    autocorrelation[0] *= 1.0 + 1e-9  # a floor: pure sines stay regular
+    predictor = solve_toeplitz(autocorrelation[:order], autocorrelation[1:])
+    whitening = sp_fft.rfft(np.concatenate([[1.0], -predictor]), n=N)
+    # the whitened spectra's products are the records' times the filter's
+    # gain |h|^2 (the whitened spectra themselves only for the records
+    # compared, below); 0 at DC: the means removed
+    gain = whitening.real**2 + whitening.imag**2
+    gain[0] = 0.0
+    # energies of the whitened records (Parseval on the one-sided spectra)
+    weights = np.full(gain.size, 2.0)
+    weights[0] = 1.0
+    if N % 2 == 0:
+        weights[-1] = 1.0
+    energy = power @ (gain * weights) / N
+    records = {}
+
+    def record(p):  # (n_u, N), whitened
+        if p not in records:
+            white = U[p] * whitening
+            white[:, 0] = 0.0
+            records[p] = sp_fft.irfft(white, n=N, axis=-1)
+        return records[p]
+
     copies = []
     for p in range(P):
         for q in range(p + 1, P):
             if not energy[p] * energy[q] > 0.0:
                 continue
-            cross = np.einsum("ij,ij->j", white[p], white[q].conj())
-            correlation = sp_fft.irfft(cross, n=N)[lags]  # sum_t u_p(t) u_q(t-lag)
+            cross = np.einsum("ij,ij->j", U[p], U[q].conj())
+            cross *= gain
+            # sum_t u_p(t) u_q(t-lag) at the lags (multiples of F)
+            correlation = _correlation_at_multiples(cross, N, F)[lags // F]
             peak = int(np.argmax(np.abs(correlation)))
             # a copy sharing 7/8 of the samples correlates above about 7/8
             # of the energy at its lag; independent records far below (the
@@ -897,6 +913,37 @@ def _delayed_copies(spectra: OneSidedSpectra, tol: float = NEAR_DEPENDENCE_TOL):
             if mismatch < 4.0 * tol:
                 copies.append((p, q))
     return copies
+
+
+def _correlation_at_multiples(cross, N, F):
+    """``c(dF)``, ``d = 0 .. N/F - 1``, of the circular correlation ``c(t) =
+    irfft(cross, n=N)[t]`` from its one-sided spectrum ``cross``
+    (``N//2+1``): ``exp(2j pi j d F / N)`` has period ``M = N/F`` in ``j``,
+    so the full spectrum folded onto ``M`` bins (``D_k = sum_f C(k + fM)``)
+    and transformed at length ``M`` gives them, ``F`` times cheaper than at
+    length ``N``. The full transform when ``F`` does not divide ``N``."""
+    if F <= 1 or N % F:
+        return sp_fft.irfft(cross, n=N)[::F]
+    M = N // F
+    H = M // 2 + 1
+    full_half = N // 2  # bins 0 .. N//2 are held, the rest are mirrored
+    # as irfft: the imaginary parts of DC and (N even) the Nyquist bin ignored
+    cross = cross.copy()
+    cross[0] = cross[0].real
+    if N % 2 == 0:
+        cross[-1] = cross[-1].real
+    folded = np.zeros(H, dtype=complex)
+    for f in range(F):
+        # bins j = k + fM, k = 0 .. H-1: held for j <= N/2, else the
+        # conjugates of N - j
+        lo, hi = f * M, f * M + H
+        held = min(hi, full_half + 1)
+        if held > lo:
+            folded[: held - lo] += cross[lo:held]
+        if hi > held:
+            start = max(lo, held)  # j = start .. hi-1 -> N - j
+            folded[start - lo:] += cross[N - start : N - hi : -1].conj()
+    return sp_fft.irfft(folded, n=M) / F
 
 
 def _aliased_rank(spectrum_of, experiments, n_inputs: int, N: int, F: int,
