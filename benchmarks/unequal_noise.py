@@ -121,7 +121,7 @@ def main(argv=None):
     if args.noise_weights == "off":  # the pooled fit of earlier versions
         import lrmfrf.estimators.local as local
 
-        local.experiment_noise_weights = lambda spectra, layout: None
+        local.experiment_noise_weights = lambda spectra, layout, **_: None
     lines = []
 
     def emit(text):

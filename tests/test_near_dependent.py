@@ -113,6 +113,11 @@ def test_nearly_dependent_experiments_are_invalid_with_the_fix(plant, eps):
                 assert not other.fit(u, y, F).valid_.any()
     with warnings.catch_warnings():
         warnings.simplefilter("error")
+        # (at eps = 1e-5 the experiments' level estimate of output 2 does
+        # not settle on the weighted fits, noise equal: pooled, with that
+        # warning; before, weights taken mid-oscillation)
+        warnings.filterwarnings("ignore", "The experiments' residual levels",
+                                UserWarning)
         assert LRMBeyondNyquist(half_window=21).fit(u, y, F).valid_.all()
 
 

@@ -205,9 +205,10 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         # MIMO experiments with clearly unequal noise levels (per output row):
         # those rows are fitted on experiments weighted to equal levels (None:
         # the levels agree, the unweighted fit)
+        # (not when every window is nearly dependent: nothing is fitted)
         weights = None
-        if n_u > 1 or n_y > 1:
-            weights = experiment_noise_weights(spectra, layout)
+        if (n_u > 1 or n_y > 1) and (near is None or not near.all()):
+            weights = experiment_noise_weights(spectra, layout, stacklevel=3)
         self._reset_refinement()
         refines = self._refines(params)
         std_method = params.get("std_method", "lemma2")
@@ -500,7 +501,10 @@ default="eiv"
         count less. Without it the std was 0.7-0.8x the Monte-Carlo std on
         some entries and 1.6-5x on others when one input was excited at a
         time (``benchmarks/unequal_noise.py``). SISO fits and ``P = 1``: all
-        ones.
+        ones. All ones too, with a ``UserWarning``, when the levels differ
+        in a way noise does not explain (the estimate at its bound, not
+        settling, or too few residual dof; e.g. model misfit that differs
+        between the experiments): the pooled fit.
     transient_ : ndarray of shape (M//2+1,) or (P, M//2+1), complex
         Transient term in the slow output DFT at each window centre; (P, n_y,
         M//2+1) when not SISO.

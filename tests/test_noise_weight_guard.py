@@ -1,0 +1,98 @@
+"""The experiment noise weights are refused where the level estimate is not a
+noise estimate (:func:`lrmfrf.uncertainty.experiment_noise_weights`).
+
+Equal noise on every experiment, first-order systems, random inputs: layouts
+with few residual degrees of freedom used to give weights at the 1e-3 clamp
+of the level ratio (factors of 30 to 3e4 between the experiments), which
+drops experiments from the fit. Now such rows are fitted pooled, with one
+warning.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+from scipy.signal import lfilter
+
+from lrmfrf import LRMBeyondNyquist
+from lrmfrf.local_models import OneSidedSpectra
+from lrmfrf.uncertainty import experiment_noise_weights
+from lrmfrf.windows import LocalModelLayout
+
+# (records, local degrees): three experiments, 5 residual dof per window
+THREE = (dict(F=4, M=300, P=3, n_u=2, n_y=3),
+         dict(half_window=10, num_degree=4, transient_degree=4, den_degree=3))
+# two experiments, one input of experiment 0 zero, 1 residual dof per window
+ONE_DOF = (dict(F=2, M=800, P=2, n_u=2, n_y=3, zero_input=True),
+           dict(half_window=6, num_degree=2, transient_degree=2, den_degree=7))
+
+
+def records(seed, F, M, P, n_u, n_y, zero_input=False):
+    """First-order systems, white inputs, equal white noise (1 % of the
+    output std) on every experiment."""
+    rng = np.random.default_rng(seed)
+    N = F * M
+    u = rng.standard_normal((P, n_u, N))
+    if zero_input:
+        u[0, -1] = 0.0
+    y = np.zeros((P, n_y, N))
+    for o in range(n_y):
+        for i in range(n_u):
+            y[:, o] += lfilter([0.2, 0.1 * (o + 1)], [1.0, -0.8 + 0.1 * i],
+                               u[:, i], axis=-1)
+    y = y[..., ::F]
+    return u, y + 0.01 * y.std() * rng.standard_normal(y.shape)
+
+
+def weights_of(seed, case):
+    cfg, degrees = case
+    layout = LocalModelLayout(F=cfg["F"], n_experiments=cfg["P"],
+                              n_inputs=cfg["n_u"], **degrees)
+    u, y = records(seed, **cfg)
+    spectra = OneSidedSpectra.from_records(u, y, cfg["F"])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        weights = experiment_noise_weights(spectra, layout)
+    return weights, caught
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_equal_noise_weights_stay_bounded(seed):
+    # before: factors of 31 to 3e4 on seeds 0, 3-7 and 9
+    weights, _ = weights_of(seed, THREE)
+    if weights is not None:
+        assert np.max(weights.max(axis=0) / weights.min(axis=0)) < 5.0
+
+
+@pytest.mark.parametrize("seed", [3, 6])
+def test_level_at_its_bound_is_not_weighted(seed):
+    weights, caught = weights_of(seed, THREE)
+    assert weights is None
+    messages = [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
+    assert len(messages) == 1
+    assert "lower bound" in messages[0] and "pooled" in messages[0]
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_one_residual_dof_is_not_weighted(seed):
+    # before: weights at the clamp (a factor 1e3 between the experiments)
+    weights, caught = weights_of(seed, ONE_DOF)
+    assert weights is None
+    messages = [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
+    assert len(messages) == 1
+    assert "degrees of freedom" in messages[0]
+
+
+def test_fit_warns_once_at_its_caller_and_is_unweighted():
+    cfg, degrees = THREE
+    u, y = records(3, **cfg)
+    est = LRMBeyondNyquist(**degrees)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        est.fit(u, y, cfg["F"])
+    ours = [w for w in caught if "pooled noise level" in str(w.message)]
+    assert len(ours) == 1
+    assert ours[0].filename == __file__
+    assert np.all(est.noise_weights_ == 1.0)
