@@ -1105,6 +1105,12 @@ WEIGHT_TOL = 0.005
 #: experiments were still weighted correctly).
 MIN_NOISE_LEVEL_DOF = 1
 
+#: :func:`experiment_noise_levels`: a window whose residual is below this
+#: fraction of its measured values (in norm) is fitted to round-off (noise-free
+#: data: about 1e-15) and carries no noise level; measurement noise 200 dB
+#: below the output would still count.
+EXACT_RESIDUAL = 1e-10
+
 #: :func:`experiment_noise_levels`: at most this many (non-overlapping) windows.
 NOISE_LEVEL_WINDOWS = 16
 
@@ -1288,6 +1294,7 @@ def _noise_levels_of_row(shared, A, b, layout):
     complement = shared.complement
     if not ok.all():
         Q2, R2, X, norms, complement = Q2[ok], R2[ok], X[ok], norms[ok], complement[ok]
+        b = b[ok]
     b1 = X[:, :, k2]  # b - Q_1 Q_1^H b
     Q2H = np.conj(np.swapaxes(Q2, 1, 2))
     Q2H_b = np.einsum("bil,bl->bi", Q2H, b1)
@@ -1308,7 +1315,9 @@ def _noise_levels_of_row(shared, A, b, layout):
     energy = (np.abs(residual) ** 2).reshape(B, P, L).sum(axis=2)
     with np.errstate(invalid="ignore", divide="ignore"):
         level = energy.sum(axis=1) / gain.sum(axis=(1, 2))  # pooled, per window
-    keep = np.isfinite(level) & (level > 0)
+    # windows fitted to round-off (noise-free data) carry no noise level
+    exact = energy.sum(axis=1) <= EXACT_RESIDUAL**2 * np.sum(np.abs(b) ** 2, axis=1)
+    keep = np.isfinite(level) & (level > 0) & ~exact
     if not keep.any():
         return None
     gain, energy, level = gain[keep], energy[keep], level[keep]

@@ -96,3 +96,30 @@ def test_fit_warns_once_at_its_caller_and_is_unweighted():
     assert len(ours) == 1
     assert ours[0].filename == __file__
     assert np.all(est.noise_weights_ == 1.0)
+
+
+
+def test_noise_free_records_are_neither_weighted_nor_warned_about():
+    """Noise-free in-class records (lrmfrf.testing.in_class_mimo_data) fit
+    every window to round-off: the residuals carry no noise level, so nothing
+    is weighted and nothing is said. Without the round-off rule the level
+    estimate read round-off as noise (dof > 0 here; the in-class fixture of
+    tests/test_mimo.py then warned that the levels were not a noise
+    estimate)."""
+    from lrmfrf.testing import in_class_mimo_data
+    from lrmfrf.uncertainty import experiment_noise_levels
+
+    degrees = dict(num_degree=2, transient_degree=2, den_degree=2)
+    layout = LocalModelLayout(F=3, half_window=11, n_experiments=2, n_inputs=2,
+                              **degrees)
+    u, y, _, _ = in_class_mimo_data(layout, 120, 2, 4)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        est = LRMBeyondNyquist(half_window=11, **degrees).fit(u, y, 3)
+    assert np.array_equal(est.noise_weights_, np.ones((2, 2)))
+    assert experiment_noise_levels(OneSidedSpectra.from_records(u, y, 3),
+                                   layout).dof.max() == 0
+    # noise 160 dB below the output is still read as noise
+    noisy = y + 1e-8 * y.std() * np.random.default_rng(3).standard_normal(y.shape)
+    levels = experiment_noise_levels(OneSidedSpectra.from_records(u, noisy, 3), layout)
+    assert levels.dof.min() > 5
