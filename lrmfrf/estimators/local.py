@@ -995,11 +995,17 @@ def _iter_weighted_fit_rows(spectra, layout, std_method, backend, weights):
 
 
 def _unweighted(fit, weights, o):
-    """``fit`` of output row ``o`` with its transient back in the units of
-    the records (the weighted fit's is scaled by each experiment's weight);
-    ``fit`` itself for an unweighted row. The FRF, its std and the noise
-    variance (of the weighted experiments: the mean of their levels) are
-    those of the weighted fit."""
+    """``fit`` of output row ``o`` with its transient (its value and its
+    coefficients in ``theta``) back in the units of the records (the
+    weighted fit's is scaled by each experiment's weight); ``fit`` itself
+    for an unweighted row. The FRF, its std and the noise variance (of the
+    weighted experiments: the mean of their levels), ``rss`` and the
+    denominator are those of the weighted fit."""
     if weights is None or not np.any(weights[:, o] != 1.0):
         return fit
-    return replace(fit, transient=fit.transient / weights[:, o])
+    layout = fit.layout
+    theta = fit.theta.copy()
+    for p in range(layout.n_experiments):
+        start = layout.transient_column(p)
+        theta[:, start:start + layout.transient_degree + 1] /= weights[p, o]
+    return replace(fit, theta=theta, transient=fit.transient / weights[:, o])
