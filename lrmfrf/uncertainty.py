@@ -1344,7 +1344,7 @@ def unequal_noise_rows(levels: ExperimentNoiseLevels | None) -> np.ndarray:
     Returns
     -------
     ndarray of shape (n_y,), bool
-        All False for ``levels`` None.
+        Empty (shape ``(0,)``) for ``levels`` None.
     """
     if levels is None:
         return np.zeros(0, dtype=bool)

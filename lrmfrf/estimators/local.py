@@ -498,13 +498,14 @@ default="eiv"
         scaled by ``1 / sqrt(level / mean level)`` (the FRF is unchanged,
         the noise levels equalised), so that ``frf_std_``, which assumes one
         noise level per row, is calibrated, and the noisier experiments
-        count less. Without it the std was 0.7-0.8x the Monte-Carlo std on
-        some entries and 1.6-5x on others when one input was excited at a
-        time (``benchmarks/unequal_noise.py``). SISO fits and ``P = 1``: all
-        ones. All ones too, with a ``UserWarning``, when the levels differ
-        in a way noise does not explain (the estimate at its bound, not
-        settling, or too few residual dof; e.g. model misfit that differs
-        between the experiments): the pooled fit.
+        count less. Without it the std was 0.61-0.81x the Monte-Carlo std on
+        some entries and up to 5.9x on others when one input was excited at
+        a time (``benchmarks/unequal_noise.py``,
+        ``benchmarks/results/unequal_noise_before_runs20.txt``). SISO fits
+        and ``P = 1``: all ones. All ones too, with a ``UserWarning``, when
+        the levels differ in a way noise does not explain (the estimate at
+        its bound, not settling, or too few residual dof; e.g. model misfit
+        that differs between the experiments): the pooled fit.
     transient_ : ndarray of shape (M//2+1,) or (P, M//2+1), complex
         Transient term in the slow output DFT at each window centre; (P, n_y,
         M//2+1) when not SISO.
