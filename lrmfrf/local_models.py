@@ -816,7 +816,8 @@ def _delayed_copies(spectra: OneSidedSpectra, tol: float = NEAR_DEPENDENCE_TOL):
     spectra) is found, and the records are compared on the samples they
     share at that lag (at least 7/8): a pair is a copy when one differs
     from a multiple of the other there by less than ``4 tol`` of its energy
-    (sine of their angle below ``2 sqrt(tol)``). A circular shift (zero mismatch on all samples) is refused before
+    (sine of their angle below ``2 sqrt(tol)``). A circular shift (zero
+    mismatch on all samples) is refused before
     (:meth:`lrmfrf._validation.Records.independent_experiments`); a shift by
     ``d = 0`` is the near dependence of the window sums. Ordinary independent
     excitations have a mismatch near 1 (above 0.84 for white noise,
