@@ -1085,7 +1085,10 @@ EQUAL_NOISE_RATIO = 1.5
 #: normal) and its largest value 5.8; the 240 equal-noise records of the
 #: benchmark (other noise draws) had one false alarm at 6.6. A false alarm
 #: gives a weighted fit (its std within the Monte-Carlo spread there) instead
-#: of the unweighted one.
+#: of the unweighted one. With few residual dof per window the spread is far
+#: lower than that (2.6x at 17 dof for three experiments, 11x at 5 dof; not
+#: at 29 dof and more) and equal-noise records are often flagged (docs/method.md
+#: section 5, review30).
 EQUAL_NOISE_Z = 6.0
 
 #: :func:`experiment_noise_weights`: re-estimations of the levels on the
