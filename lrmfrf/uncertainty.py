@@ -1086,9 +1086,10 @@ EQUAL_NOISE_RATIO = 1.5
 #: benchmark (other noise draws) had one false alarm at 6.6. A false alarm
 #: gives a weighted fit (its std within the Monte-Carlo spread there) instead
 #: of the unweighted one. With few residual dof per window the spread is far
-#: lower than that (2.6x at 17 dof for three experiments, 11x at 5 dof; not
-#: at 29 dof and more) and equal-noise records are often flagged (docs/method.md
-#: section 5, review30).
+#: lower than that (three experiments, first-order records of
+#: tests/test_noise_weight_guard.py: 1.5x at 53 dof, 2.1x at 29, 2.6x at 17,
+#: 11x at 5) and equal-noise records are often flagged below about 20 dof
+#: (docs/method.md section 5, review30).
 EQUAL_NOISE_Z = 6.0
 
 #: :func:`experiment_noise_weights`: re-estimations of the levels on the
