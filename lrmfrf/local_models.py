@@ -816,7 +816,8 @@ def _delayed_copies(spectra: OneSidedSpectra, tol: float = NEAR_DEPENDENCE_TOL):
     spectra) is found, and the records are compared on the samples they
     share at that lag (at least 7/8): a pair is a copy when one differs
     from a multiple of the other there by less than ``4 tol`` of its energy
-    (sine of their angle below ``2 sqrt(tol)``). A circular shift (zero mismatch on all samples) is refused before
+    (sine of their angle below ``2 sqrt(tol)``). A circular shift (zero
+    mismatch on all samples) is refused before
     (:meth:`lrmfrf._validation.Records.independent_experiments`); a shift by
     ``d = 0`` is the near dependence of the window sums. Ordinary independent
     excitations have a mismatch near 1 (above 0.84 for white noise,
@@ -1028,9 +1029,10 @@ def _dependent_windows(sums, pairs, P, need, tol, copies=()):
     """From the window sums of the scaled ``U_p conj(U_q)`` (one row per pair
     of ``pairs``): the windows with fewer than ``need`` eigenvalues of the
     experiments' normalised Gram matrix above ``tol`` times the largest,
-    less one per delayed copy ``(p, q)`` of ``copies``
-    (:func:`_delayed_copies`) whose two experiments have input in the
-    window (a copy of a copy counted once)."""
+    with each delayed copy ``q`` of a pair ``(p, q)`` of ``copies``
+    (:func:`_delayed_copies`) left out of that matrix in the windows where
+    both experiments have input (a copy of several counted once; a copy the
+    window sums already see as dependent is not discounted twice)."""
     B = sums.shape[1]
     # normalised to unit energy per experiment and window (1-D arrays over
     # the windows: the P x P matrices are built only where the bound fails)
@@ -1049,25 +1051,27 @@ def _dependent_windows(sums, pairs, P, need, tol, copies=()):
     radius = rows.max(axis=0)
     clear = present.all(axis=0) & (1 - radius > tol * (1 + radius))
     flagged = np.zeros(B, dtype=bool)
-    repeats = 0  # per window, the copies of an experiment counted already
+    # per window, the delayed copies left out of the count
+    dropped = np.zeros((P, B), dtype=bool)
+    for p, q in copies:
+        dropped[q] |= present[p] & present[q]
     if copies:
-        repeats = np.zeros(B, dtype=int)
-        copied = set()
-        for p, q in copies:
-            if q not in copied:
-                copied.add(q)
-                repeats += present[p] & present[q]
-        flagged[clear] = P - repeats[clear] < need
-        repeats = repeats[~clear & present.any(axis=0)]
+        # (a principal submatrix of a clear matrix is clear: the others count)
+        flagged[clear] = P - dropped[:, clear].sum(axis=0) < need
     check = np.flatnonzero(~clear & present.any(axis=0))
     if check.size:
+        # a copy's row and column zeroed: the other eigenvalues are those of
+        # the experiments without it (whether or not the window sums already
+        # see it as dependent: a small delay turns the phase little across a
+        # window, and subtracting it from the count then discounted it twice)
+        kept = norm[:, check] * ~dropped[:, check]
         gram = np.empty((check.size, P, P), dtype=complex)
         for (p, q), s in index.items():
-            gram[:, p, q] = sums[s, check] * norm[p, check] * norm[q, check]
+            gram[:, p, q] = sums[s, check] * kept[p] * kept[q]
             gram[:, q, p] = np.conj(gram[:, p, q])
         eig = np.linalg.eigvalsh(gram)  # ascending
         count = np.sum(eig > tol * eig[:, -1:], axis=1)
-        flagged[check] = count - repeats < need
+        flagged[check] = count < need
     return flagged
 
 

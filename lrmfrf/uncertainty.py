@@ -1085,7 +1085,11 @@ EQUAL_NOISE_RATIO = 1.5
 #: normal) and its largest value 5.8; the 240 equal-noise records of the
 #: benchmark (other noise draws) had one false alarm at 6.6. A false alarm
 #: gives a weighted fit (its std within the Monte-Carlo spread there) instead
-#: of the unweighted one.
+#: of the unweighted one. With few residual dof per window the spread is far
+#: lower than that (three experiments, first-order records of
+#: tests/test_noise_weight_guard.py: 1.5x at 53 dof, 2.1x at 29, 2.6x at 17,
+#: 11x at 5) and equal-noise records are often flagged below about 20 dof
+#: (docs/method.md section 5, review30).
 EQUAL_NOISE_Z = 6.0
 
 #: :func:`experiment_noise_weights`: re-estimations of the levels on the
@@ -1344,7 +1348,7 @@ def unequal_noise_rows(levels: ExperimentNoiseLevels | None) -> np.ndarray:
     Returns
     -------
     ndarray of shape (n_y,), bool
-        All False for ``levels`` None.
+        Empty (shape ``(0,)``) for ``levels`` None.
     """
     if levels is None:
         return np.zeros(0, dtype=bool)

@@ -1,4 +1,5 @@
-"""Relative links and #anchors in README.md and docs/*.md point at files and headings that exist."""
+"""Relative links and #anchors in README.md and docs/*.md point at files and
+headings that exist."""
 
 from __future__ import annotations
 
@@ -22,7 +23,8 @@ def _prose_lines(text: str):
 
 
 def slug(heading: str) -> str:
-    """GitHub's anchor for a heading: lower case, punctuation dropped, spaces to hyphens."""
+    """GitHub's anchor for a heading: lower case, punctuation dropped, spaces
+    to hyphens."""
     text = heading.strip().lower()
     text = re.sub(r"[^\w\- ]", "", text)
     return text.replace(" ", "-")
@@ -67,7 +69,8 @@ def test_links_in_readme_and_docs_resolve():
 
 
 def test_the_check_finds_a_missing_file_and_a_missing_anchor(tmp_path):
-    """The check itself can fail: a wrong anchor, a missing file, a code block ignored."""
+    """The check itself can fail: a wrong anchor, a missing file, a code
+    block ignored."""
     (tmp_path / "other.md").write_text("# Title\n\n## The paper's `G_z`, 2x2?\n")
     page = tmp_path / "page.md"
     page.write_text(

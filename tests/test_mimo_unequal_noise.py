@@ -171,3 +171,22 @@ def test_siso_and_single_experiment_are_not_weighted(system):
     y1 = noisy(noise_free(system, u1, F), [1.0], rng)
     est = fit(u1, y1, F, half_window=40)
     assert np.array_equal(est.noise_weights_, np.ones((1, 2)))
+
+
+@pytest.mark.parametrize("kwargs", [{}, {"std_method": "hc"}, {"sk_iterations": 2}])
+def test_weighted_local_fit_theta_holds_the_records_transient(system, kwargs):
+    """In a weighted row ``local_fit_.theta``'s transient coefficients are in
+    the units of the records, as ``local_fit_.transient`` (its value at the
+    window centre, the constant coefficient). Before, ``theta`` kept the
+    weighted fit's (off by each experiment's weight, up to 2x here)."""
+    F = 2
+    u = one_at_a_time(M * F, 8)
+    y = noisy(noise_free(system, u, F), [1.0, 5.0], np.random.default_rng(4))
+    est = fit(u, y, F, **kwargs)
+    assert np.any(est.noise_weights_ != 1.0)
+    layout = est.layout_
+    columns = [layout.transient_column(p) for p in range(2)]
+    for local in est.local_fit_:
+        ok = local.well_posed
+        np.testing.assert_array_equal(local.theta[ok][:, columns],
+                                      local.transient[ok])

@@ -518,3 +518,29 @@ def test_no_ordinary_excitation_looks_like_a_delayed_copy():
         for u in sets:
             spectra = OneSidedSpectra.from_records(u, np.zeros((P, 1, M_)), F_)
             assert _delayed_copies(spectra) == []
+
+
+def test_a_delayed_copy_the_window_sums_see_is_not_discounted_twice():
+    """A copy delayed by one slow sample in a long record (M = 10000): the
+    phase turns by only 2 pi L / M across a window, so the window sums see
+    the copy as dependent already. With a third, independent experiment two
+    independent ones remain and nothing is flagged; the count less one per
+    copy discounted it twice and flagged every window (review30)."""
+    from lrmfrf.local_models import nearly_dependent_windows
+
+    F6, M6 = 6, 10000
+    rng = np.random.default_rng(1)
+    u = _delayed_copy(1, F6 * M6, F6, rng, kind="noise")
+
+    def check(records):
+        lay = LocalModelLayout(F=F6, half_window=18, num_degree=4,
+                               transient_degree=4, den_degree=7,
+                               n_experiments=records.shape[0], n_inputs=1)
+        spectra = OneSidedSpectra.from_records(
+            records, np.zeros((records.shape[0], 1, M6)), F6)
+        return nearly_dependent_windows(spectra, lay)
+
+    assert check(u).all()
+    third = rng.standard_normal((1, 1, F6 * M6))
+    assert not check(np.concatenate([u, third])).any()
+    assert not check(np.concatenate([u[:1], third, u[1:]])).any()

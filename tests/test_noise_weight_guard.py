@@ -98,7 +98,6 @@ def test_fit_warns_once_at_its_caller_and_is_unweighted():
     assert np.all(est.noise_weights_ == 1.0)
 
 
-
 def test_noise_free_records_are_neither_weighted_nor_warned_about():
     """Noise-free in-class records (lrmfrf.testing.in_class_mimo_data) fit
     every window to round-off: the residuals carry no noise level, so nothing

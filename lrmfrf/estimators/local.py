@@ -498,13 +498,14 @@ default="eiv"
         scaled by ``1 / sqrt(level / mean level)`` (the FRF is unchanged,
         the noise levels equalised), so that ``frf_std_``, which assumes one
         noise level per row, is calibrated, and the noisier experiments
-        count less. Without it the std was 0.7-0.8x the Monte-Carlo std on
-        some entries and 1.6-5x on others when one input was excited at a
-        time (``benchmarks/unequal_noise.py``). SISO fits and ``P = 1``: all
-        ones. All ones too, with a ``UserWarning``, when the levels differ
-        in a way noise does not explain (the estimate at its bound, not
-        settling, or too few residual dof; e.g. model misfit that differs
-        between the experiments): the pooled fit.
+        count less. Without it the std was 0.61-0.81x the Monte-Carlo std on
+        some entries and up to 5.9x on others when one input was excited at
+        a time (``benchmarks/unequal_noise.py``,
+        ``benchmarks/results/unequal_noise_before_runs20.txt``). SISO fits
+        and ``P = 1``: all ones. All ones too, with a ``UserWarning``, when
+        the levels differ in a way noise does not explain (the estimate at
+        its bound, not settling, or too few residual dof; e.g. model misfit
+        that differs between the experiments): the pooled fit.
     transient_ : ndarray of shape (M//2+1,) or (P, M//2+1), complex
         Transient term in the slow output DFT at each window centre; (P, n_y,
         M//2+1) when not SISO.
@@ -995,11 +996,17 @@ def _iter_weighted_fit_rows(spectra, layout, std_method, backend, weights):
 
 
 def _unweighted(fit, weights, o):
-    """``fit`` of output row ``o`` with its transient back in the units of
-    the records (the weighted fit's is scaled by each experiment's weight);
-    ``fit`` itself for an unweighted row. The FRF, its std and the noise
-    variance (of the weighted experiments: the mean of their levels) are
-    those of the weighted fit."""
+    """``fit`` of output row ``o`` with its transient (its value and its
+    coefficients in ``theta``) back in the units of the records (the
+    weighted fit's is scaled by each experiment's weight); ``fit`` itself
+    for an unweighted row. The FRF, its std and the noise variance (of the
+    weighted experiments: the mean of their levels), ``rss`` and the
+    denominator are those of the weighted fit."""
     if weights is None or not np.any(weights[:, o] != 1.0):
         return fit
-    return replace(fit, transient=fit.transient / weights[:, o])
+    layout = fit.layout
+    theta = fit.theta.copy()
+    for p in range(layout.n_experiments):
+        start = layout.transient_column(p)
+        theta[:, start:start + layout.transient_degree + 1] /= weights[p, o]
+    return replace(fit, theta=theta, transient=fit.transient / weights[:, o])
