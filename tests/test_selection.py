@@ -48,6 +48,41 @@ def _brute_force_loo(U, Y, layout, bins, rows):
     return out
 
 
+# --- the criterion does not depend on the spectra's scale -----------------------
+
+
+@pytest.mark.parametrize("criterion", ["aicc", "gcv", "press", "gaic"])
+def test_local_model_criterion_is_scale_invariant(criterion):
+    """Spectra at 2**+-600 give the criterion of the ordinary ones in their own
+    units (their residuals overflowed or underflowed: every window invalid, a
+    log of 0, or an overflow error), and the inputs' scale does not enter."""
+    rng = np.random.default_rng(3)
+    U, Y = _dfts(*_data(rng, P=2))
+    layout = LocalModelLayout(F=F, half_window=8, num_degree=2, transient_degree=1,
+                              den_degree=3, n_experiments=2)
+    ref = local_model_criterion(U, Y, layout, criterion=criterion)
+    assert ref.n_invalid == 0 and np.isfinite(ref.value)
+    U_in, Y_in = U.copy(), Y.copy()
+    for u_exp, y_exp in [(600, 0), (-600, 0), (0, 600), (0, -600), (-500, 500)]:
+        U_s, Y_s = np.ldexp(1.0, u_exp) * U, np.ldexp(1.0, y_exp) * Y
+        got = local_model_criterion(U_s, Y_s, layout, criterion=criterion)
+        assert got.n_invalid == 0
+        # per window: squared outputs, exact up to the power of two (beyond
+        # the float range inf or 0, as the estimators' variances)
+        with np.errstate(over="ignore", under="ignore"):
+            per_bin, value = (np.ldexp(ref.per_bin, 2 * y_exp),
+                              np.ldexp(ref.value, 2 * y_exp))
+        np.testing.assert_array_equal(got.per_bin, per_bin)
+        if criterion in ("aicc", "gaic"):  # logs of a squared output
+            assert got.value == pytest.approx(
+                ref.value + 2 * y_exp * np.log(2.0), rel=1e-13, abs=1e-12)
+        else:
+            assert got.value == value
+    # the caller's arrays are not modified
+    np.testing.assert_array_equal(U, U_in)
+    np.testing.assert_array_equal(Y, Y_in)
+
+
 # --- the criterion is an exact leave-one-out ------------------------------------
 
 

@@ -202,6 +202,7 @@ from ..local_models import (
     fit_local_models,
     half_slow_bins,
     nearly_dependent_windows,
+    normalise_spectra,
     power_of_two_exponent,
     scale_by_power_of_two,
     window_excitation,
@@ -306,6 +307,9 @@ def local_model_criterion(
     Returns
     -------
     LocalCriterion
+        In the units of ``Y`` (``per_bin`` squared outputs, AICc and GAIC
+        their logs); the spectra are scored normalised by powers of two
+        (exact), so their scale does not change the ranking.
 
     Notes
     -----
@@ -332,7 +336,10 @@ def local_model_criterion(
             f"equations and {layout.n_params} parameters. Increase half_window or "
             "lower the degrees."
         )
-    Y = np.asarray(Y)
+    # scored on the spectra normalised by powers of two, as the estimators fit
+    # them (exact; ordinary spectra untouched), and reported in their units:
+    # residuals of spectra at 2**600 would overflow, at 2**-600 underflow
+    U, Y, _, y_exponent = normalise_spectra(np.asarray(U), np.asarray(Y))
     rows = [Y] if Y.ndim == 2 else [Y[:, o] for o in range(Y.shape[1])]
     name = "press" if criterion == "press" else "residual"
     values, well_posed = [], []
@@ -343,9 +350,11 @@ def local_model_criterion(
         well_posed.append(ok)
     values = values[0] if Y.ndim == 2 else np.stack(values)
     well_posed = well_posed[0] if Y.ndim == 2 else np.stack(well_posed)
+    value = _combine(values, well_posed, layout, criterion, Y.shape[-1])
     return LocalCriterion(
-        value=_combine(values, well_posed, layout, criterion, Y.shape[-1]),
-        per_bin=values,
+        value=float(_in_record_units(value, criterion, y_exponent)),
+        # squared outputs (residual variances or LOO errors) in any criterion
+        per_bin=_in_record_units(values, "gcv", y_exponent),
         n_invalid=int(np.count_nonzero(~well_posed)),
     )
 
