@@ -23,8 +23,10 @@ entry, at the bins where the loop gain ``||C(z) P_fb||`` exceeds 0.3 and over
 all bins but the DC and slow-Nyquist band sets: the median over bins of the
 predicted std (RMS over runs) over the Monte-Carlo std; the same with the
 Monte-Carlo covariance of ``G_eq`` fed to the propagation (per row, and
-between rows too); the median |corr| of the errors of ``G_eq`` between rows
-0 and 2; and the time of ``frf_joint_cov_`` against that of the fit.
+between rows too), and the estimator's correlations (its mean
+``frf_joint_cov_`` over the runs) on the Monte-Carlo variances; the median
+|corr| of the errors of ``G_eq`` between rows 0 and 2, measured and
+predicted; and the time of ``frf_joint_cov_`` against that of the fit.
 
 Run::
 
@@ -64,8 +66,9 @@ def _setup(gain):
 
 def _fast_loop_system(plant, controller):
     """The fast closed loop from [r; v] (plant inputs, output noise) to y."""
-    n_y, n_u = plant.noutputs, plant.ninputs
-    augmented = control.ss(plant.A, np.hstack([plant.B, np.zeros((plant.nstates, n_y))]),
+    n_y = plant.noutputs
+    zeros = np.zeros((plant.nstates, n_y))
+    augmented = control.ss(plant.A, np.hstack([plant.B, zeros]),
                            plant.C, np.hstack([plant.D, np.eye(n_y)]), plant.dt)
     select = np.eye(n_y)[FB]  # S
     K = control.ss(controller.A, controller.B @ select,
@@ -113,7 +116,7 @@ def run_case(case, runs, gain):
     high = (loop_gain > 0.3) & inner
     loop = _fast_loop_system(plant, controller) if case == "fast" else None
     r = orthogonal_multisines(2, N, rng=0)
-    closed, plants, old, new = [], [], [], []
+    closed, plants, old, new, joints = [], [], [], [], []
     t_fit = t_joint = 0.0
     for run in range(runs):
         y = _records(case, plant, controller, loop, r, run)
@@ -135,6 +138,7 @@ def run_case(case, runs, gain):
             est.frf_joint_cov_  # noqa: B018 (computed on first access)
             t_joint += time.perf_counter() - t0
             new.append(plant_from_closed_loop(est, controller, FB).frf_std_)
+            joints.append(est.frf_joint_cov_)
     g, p = np.array(closed), np.array(plants)
     mc = np.sqrt(np.mean(np.abs(p - p.mean(axis=0)) ** 2, axis=0))
     d = g - g.mean(axis=0)
@@ -169,12 +173,30 @@ def run_case(case, runs, gain):
           % _ratios(mc_rows, mc, high, inner))
     print("  MC cov of G_eq, between rows too:                %s | %s"
           % _ratios(mc_joint, mc, high, inner))
+    if joints:
+        # the estimator's correlations (mean joint over runs) on the MC's
+        # variances: what the correlation alone gives
+        mean = np.mean(joints, axis=0)
+        own = np.sqrt(np.abs(np.einsum("oioik->oik", mean)))
+        mc_own = np.sqrt(np.abs(np.einsum("oioik->oik", joint)))
+        scale = mc_own / own
+        hybrid = mean * scale[:, :, None, None] * scale[None, None]
+        print("  estimator's correlations on the MC variances:    %s | %s"
+              % _ratios(plant_from_closed_loop(SimpleNamespace(
+                  **base, frf_cov_=np.einsum("oiojk->oijk", hybrid),
+                  frf_joint_cov_=hybrid), controller, FB).frf_std_, mc, high,
+                  inner))
+        predicted_corr = np.abs(mean[0, 0, 2, 0]) / (own[0, 0] * own[2, 0])
     mc_g = np.sqrt(np.mean(np.abs(d) ** 2, axis=0))
     print("  G_eq: last run's frf_std_ / MC std, median (high | inner): %s | %s"
           % _ratios(geq, mc_g, high, inner))
     print(f"  |corr| of G_eq errors, rows 0 and 2 (input 0): "
           f"{np.median(corr[high]):.2f} where the loop gain > 0.3, "
           f"{np.median(corr[inner & ~high]):.2f} elsewhere")
+    if joints:
+        print(f"  |corr| the estimator predicts (mean frf_joint_cov_): "
+              f"{np.median(predicted_corr[high]):.2f} and "
+              f"{np.median(predicted_corr[inner & ~high]):.2f}")
     if new:
         print(f"  time: fit {1e3 * t_fit / runs:.0f} ms, frf_joint_cov_ "
               f"{1e3 * t_joint / runs:.0f} ms per run")
