@@ -58,8 +58,9 @@ the residuals of the rows' local fits in a window are correlated
 (:func:`lrmfrf.uncertainty.cross_row_covariance`); with ``(I + P C S)``
 mixing the rows, the cross terms can cancel much of the diagonal ones (a
 3x2 slow loop, fed-back bins: ``frf_std_`` 1.10-1.86x the Monte-Carlo std
-without them, 1.05-1.23x with them; the rest is the estimator's own
-per-row std, 1.00-1.09x there, magnified by the cancellation;
+without them, 1.05-1.23x with them; the rest is the estimator's per-row
+std, 1.00-1.09x there, and its correlation, 0.55 against 0.68 measured,
+magnified by the cancellation; a fast loop: 1.11-1.53x and 1.05-1.24x;
 ``benchmarks/closed_loop_row_covariance.py``).
 Without ``frf_joint_cov_`` the rows are independent, each with the covariance
 ``frf_cov_`` of the estimator (``E[dG_oi conj(dG_oj)]``), or with
