@@ -14,12 +14,14 @@ output, ``--runs`` noise realisations. LRM (defaults) from r to y_l, then
 
 Printed per entry, at the bins where the loop gain ``||C(z) P_fb||`` exceeds
 0.3: the median over those bins of the predicted std of the plant (RMS over
-runs) over its Monte-Carlo std, with the estimator's ``frf_cov_`` and with the
-Monte-Carlo per-row covariance of ``G_eq`` fed to the same propagation; and
-the median correlation between the errors of ``G_eq`` in the two fed-back
-rows. The propagation neglects the covariance between output rows, which the
-noise in the loop creates: there it over-predicts the plant's std even with
-the exact per-row covariance.
+runs) over its Monte-Carlo std, with the estimator's covariance (its
+``frf_joint_cov_``, between output rows too, since
+``benchmarks/closed_loop_row_covariance.py``; ``frf_cov_`` alone before) and
+with the Monte-Carlo per-row covariance of ``G_eq`` fed to the same
+propagation (rows independent); and the median correlation between the errors
+of ``G_eq`` in the two fed-back rows. The noise in the loop correlates the
+rows: with the rows taken as independent the propagation over-predicts the
+plant's std even with the exact per-row covariance.
 
 Run::
 
@@ -103,11 +105,11 @@ def main(argv=None):
             np.mean(np.abs(d[:, 0, 0]) ** 2, axis=0)
             * np.mean(np.abs(d[:, 2, 0]) ** 2, axis=0))
         print(f"noise {'in' if in_loop else 'outside'} the loop:")
-        print("  with the estimator's frf_cov_:",
+        print("  with the estimator's covariance:",
               np.round(np.median((predicted / mc)[..., high], axis=-1), 3).tolist())
         print("  with the MC per-row cov of G_eq:",
               np.round(np.median((with_mc_cov / mc)[..., high], axis=-1), 3).tolist())
-        print("  with the estimator's frf_cov_, median over all bins but DC "
+        print("  with the estimator's covariance, median over all bins but DC "
               "and Nyquist:",
               np.round(np.median((predicted / mc)[..., 1:-1], axis=-1), 3).tolist())
         print(f"  |corr| of G_eq errors, rows 0 and 2 (input 0): "

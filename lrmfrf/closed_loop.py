@@ -43,13 +43,32 @@ DFT grid (LRM/LPM do; bins above ``N/2`` are the complex conjugates).
 **Uncertainty** (first order). Fast loop: ``dP = (I + P C S) dG_eq (I - C S
 G_eq)^-1``. Slow loop: ``dP(k_f) = Z sum_g dG_eq(k_g) R_g`` with ``Z = (I -
 Lam_eq C_l S)^-1`` and ``R_g = delta_{fg} I + (H(k_g) / F) C_l S P(k_f)``.
-Each output row of ``dG_eq`` at each bin has the covariance ``frf_cov_`` of
-the estimator (``E[dG_oi conj(dG_oj)]``), or independent entries with
-variances ``frf_std_**2`` when it has none. Neglected: covariance between
-output rows, between bins (the F bands of one slow bin come from one local
-fit) and the pseudo-covariance ``E[dG dG^T]`` (which matters only where a
-bin and its mirror ``N - k`` fall in the same band set, i.e. the DC and slow
-Nyquist slow bins).
+Both are ``dP = L (sum_g dG_g R_g)`` with a left factor mixing the output
+rows; with ``J[o, i, p, j] = E[dG_oi conj(dG_pj)]`` the covariance of the
+entries of one bin (``frf_joint_cov_`` of the estimator, between output rows
+too),
+
+.. math:: E|dP_{ab}|^2 = \sum_g \sum_{o,p,i,j} L_{ao} \bar L_{ap}
+          (R_g)_{ib} (\bar R_g)_{jb} J_g[o, i, p, j]
+
+(``_entry_variance``). The rows
+of ``dG_eq`` are correlated when the loop feeds the output noise back: the
+noise then reaches several outputs through the controller and the plant, and
+the residuals of the rows' local fits in a window are correlated
+(:func:`lrmfrf.uncertainty.cross_row_covariance`); with ``(I + P C S)``
+mixing the rows, the cross terms can cancel much of the diagonal ones (a
+3x2 slow loop, fed-back bins: ``frf_std_`` 1.10-1.86x the Monte-Carlo std
+without them, 1.05-1.23x with them; the rest is the estimator's per-row
+std, 1.00-1.09x there, and its correlation, 0.55 against 0.68 measured,
+magnified by the cancellation; a fast loop: 1.11-1.53x and 1.05-1.24x;
+``benchmarks/closed_loop_row_covariance.py``).
+Without ``frf_joint_cov_`` the rows are independent, each with the covariance
+``frf_cov_`` of the estimator (``E[dG_oi conj(dG_oj)]``), or with
+independent entries of variances ``frf_std_**2`` when it has none.
+Neglected: covariance between bins (the F bands of one slow bin come from
+one local fit) and the pseudo-covariance ``E[dG dG^T]`` (which matters only
+where a bin and its mirror ``N - k`` fall in the same band set, i.e. the DC
+and slow Nyquist slow bins).
 """
 
 from __future__ import annotations
@@ -161,8 +180,12 @@ def plant_from_closed_loop(
         Any object with the fitted attributes ``frequencies_``, ``frf_``,
         ``frf_std_``, ``valid_``, ``sample_time_``, ``downsampling_factor_``
         (and, for MIMO, ``n_inputs_``, ``n_outputs_``; optionally
-        ``frf_cov_`` of shape (n_y, n_u, n_u, K)), e.g. a fitted
-        :class:`lrmfrf.LRMBeyondNyquist`. A slow-rate loop needs the full
+        ``frf_cov_`` of shape (n_y, n_u, n_u, K), and ``frf_joint_cov_`` of
+        shape (n_y, n_u, n_y, n_u, K), the covariance between output rows
+        too, read when there are several outputs), e.g. a fitted
+        :class:`lrmfrf.LRMBeyondNyquist` (whose ``frf_joint_cov_`` is
+        computed on this first access: about twice the fit's time). A
+        slow-rate loop needs the full
         one-sided DFT grid ``k / (N Ts)``, ``k = 0..N//2``.
     controller : control.StateSpace or control.TransferFunction
         Discrete controller with ``n_u`` outputs and ``len(feedback_outputs)``
@@ -294,11 +317,28 @@ def _read_estimate(estimator) -> dict:
                 f"{(n_outputs, n_inputs, n_inputs, frequencies.size)}; got "
                 f"{cov.shape}."
             )
+    # (K, n_y, n_u, n_y, n_u): the rows' blocks on the diagonal, or the
+    # estimator's covariance between rows too (read only when rows can mix)
+    joint = getattr(estimator, "frf_joint_cov_", None) if n_outputs > 1 else None
+    if joint is None:
+        joint = np.zeros((frequencies.size, n_outputs, n_inputs, n_outputs,
+                          n_inputs), dtype=complex)
+        for o in range(n_outputs):
+            joint[:, o, :, o, :] = np.moveaxis(cov[o], -1, 0)
+    else:
+        joint = np.asarray(joint, dtype=complex)
+        expected = (n_outputs, n_inputs, n_outputs, n_inputs, frequencies.size)
+        if joint.shape != expected:
+            raise ValueError(
+                f"the estimator's frf_joint_cov_ must have shape (n_y, n_u, n_y, "
+                f"n_u, K) = {expected}; got {joint.shape}."
+            )
+        joint = np.moveaxis(joint, -1, 0)
     valid_bins = valid.all(axis=(0, 1)) & np.isfinite(frf).all(axis=(0, 1))
     return {
         "frequencies": frequencies,
         "frf": frf,
-        "cov": cov,
+        "cov": joint,
         "valid": valid_bins,
         "siso": siso,
         "sample_time": float(estimator.sample_time_),
@@ -350,14 +390,20 @@ def _safe_inverse(matrices: np.ndarray, subtracted: np.ndarray):
     return inverse, ok
 
 
-def _row_variance(left, right, cov) -> np.ndarray:
-    """``E|(left dG right)_ab|^2`` for independent output rows of ``dG``.
+def _sandwich(right, joint) -> np.ndarray:
+    """``T[k, o, p, b] = sum_ij right_ib J[o, i, p, j] conj(right_jb)``: the
+    covariance between rows ``o`` and ``p`` of column ``b`` of ``dG right``.
 
-    ``left`` (K, n_y, n_y), ``right`` (K, n_u, n_u), ``cov`` (K, n_y, n_u,
-    n_u) with ``cov[o, i, j] = E[dG_oi conj(dG_oj)]``; returns (K, n_y, n_u).
+    ``right`` (K, n_u, n_u), ``joint`` (K, n_y, n_u, n_y, n_u) with
+    ``J[o, i, p, j] = E[dG_oi conj(dG_pj)]``; returns (K, n_y, n_y, n_u).
     """
-    row = np.einsum("kib,koij,kjb->kob", right, cov, right.conj()).real
-    return np.einsum("kao,kob->kab", np.abs(left) ** 2, row)
+    return np.einsum("kib,koipj,kjb->kopb", right, joint, right.conj())
+
+
+def _entry_variance(left, rows) -> np.ndarray:
+    """``E|(left X)_ab|^2`` from the row covariance ``rows`` of ``X``
+    (:func:`_sandwich`); ``left`` (K, n_y, n_y); returns (K, n_y, n_u)."""
+    return np.einsum("kao,kopb,kap->kab", left, rows, left.conj()).real
 
 
 def _fast_loop(estimate, controller_frf, feedback):
@@ -372,7 +418,7 @@ def _fast_loop(estimate, controller_frf, feedback):
         P = G @ inverse
         left = np.tile(np.eye(n_outputs, dtype=complex), (G.shape[0], 1, 1))
         left[:, :, feedback] += P @ Cz
-        var = _row_variance(left, inverse, np.moveaxis(estimate["cov"], -1, 0))
+        var = _entry_variance(left, _sandwich(inverse, estimate["cov"]))
     return _unbatched(P), _unbatched(var), valid
 
 
@@ -387,7 +433,7 @@ def _slow_loop(estimate, controller, feedback):
     # the estimate on the two-sided grid q = f M + k, reshaped (F, M, ...)
     G = _batched(estimate["frf"])[mirror]
     G[upper] = G[upper].conj()
-    cov = np.moveaxis(estimate["cov"], -1, 0)[mirror]
+    cov = estimate["cov"][mirror]
     cov[upper] = cov[upper].conj()
     valid = estimate["valid"][mirror].reshape(F, slow).all(axis=0)
     q = np.arange(n_samples)
@@ -408,14 +454,13 @@ def _slow_loop(estimate, controller, feedback):
         P = Z[k] @ G[:K]
         # dP(q) = Z sum_g dG(k_g) R_g, R_g = delta I + (H(k_g)/F) C_l S P(q)
         CSP = Cl[k] @ P[:, feedback, :]  # (K, n_u, n_u)
-        row = np.zeros((K, n_outputs, n_inputs))
-        for band in range(F):
+        rows = np.zeros((K, n_outputs, n_outputs, n_inputs), dtype=complex)
+        for band in range(F):  # (bins independent: no cross-band terms)
             source = k + band * slow
             right = (hold[source] / F)[:, None, None] * CSP
             right[source == bins] += np.eye(n_inputs)
-            row += np.einsum("kib,koij,kjb->kob", right, cov[source],
-                             right.conj()).real
-        var = np.einsum("kao,kob->kab", np.abs(Z[k]) ** 2, row)
+            rows += _sandwich(right, cov[source])
+        var = _entry_variance(Z[k], rows)
     return _unbatched(P), _unbatched(var), valid[k]
 
 

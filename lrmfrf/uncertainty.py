@@ -102,6 +102,7 @@ __all__ = [
     "iter_calibrated_fits",
     "eiv_terms",
     "eiv_terms_rows",
+    "cross_row_covariance",
     "check_std_method",
     "VarianceTerms",
     "variance_terms",
@@ -228,33 +229,7 @@ def _terms_of_chunk(U, Y, layout, theta, slow_bins, with_hc):
     good = np.all(np.isfinite(theta), axis=1)
     theta0 = np.where(good[:, None], theta, 0.0)
     residual = b - np.einsum("blp,bp->bl", A, theta0)
-    # equilibrated normal equations (condition numbers of a few hundred, see
-    # docs/method.md): S = A (A^H A)^-1 at the centre columns, leverages
-    norms = np.linalg.norm(A, axis=1)
-    zero_column = ~(norms > np.finfo(float).tiny)
-    norms = np.where(zero_column, 1.0, norms)
-    A_eq = A / norms[:, None, :]
-    # contiguous operands: numpy's stacked matmul uses BLAS only for them
-    gram = np.ascontiguousarray(np.conj(np.swapaxes(A_eq, 1, 2))) @ A_eq
-    identity = np.eye(gram.shape[-1])
-    gram = np.where(good[:, None, None], gram, identity)
-    # an exactly-zero column (e.g. the denominator of a zero output) gets a
-    # zero coefficient from the solvers: a unit pivot that couples to nothing
-    gram = np.where(zero_column[:, :, None] | zero_column[:, None, :], 0.0, gram)
-    gram[zero_column[:, :, None] & np.eye(gram.shape[-1], dtype=bool)] = 1.0
-    try:
-        gram_inv = np.linalg.inv(gram)
-    except np.linalg.LinAlgError:  # some window exactly singular: all by SVD
-        gram_inv = np.full_like(gram, np.nan)
-    # windows the normal equations cannot invert accurately (a rank-deficient
-    # denominator block on noise-free data, which the solvers keep as well
-    # posed): the pseudo-inverse of the truncated SVD, as the QR solver does
-    with np.errstate(invalid="ignore"):
-        error = np.max(np.abs(gram @ gram_inv - identity), axis=(1, 2))
-    poor = good & ~(error < INVERSE_TOL)
-    if poor.any():
-        gram_inv[poor] = _pseudo_inverse_gram(A_eq[poor])
-    AG = A_eq @ gram_inv  # (B, L, p)
+    A_eq, norms, gram_inv, AG = _window_solution(A, good)
     S = np.ascontiguousarray(AG[:, :, :nb] / norms[:, None, :nb])
     leverage = np.sum((AG * A_eq.conj()).real, axis=2)
     e_weight = np.abs(_denominator_on_window(theta0, layout)) ** 2
@@ -287,6 +262,182 @@ def _terms_of_chunk(U, Y, layout, theta, slow_bins, with_hc):
     for arr in out:
         arr[~good] = np.nan
     return out
+
+
+def cross_row_covariance(
+    U: np.ndarray,
+    Ys,
+    layout: LocalModelLayout,
+    thetas,
+    slow_bins: np.ndarray,
+    *,
+    method: str = "eiv",
+    chunk_size: int | None = None,
+) -> np.ndarray:
+    r"""Covariance of the window-centre band values between output rows.
+
+    Each output row ``o`` has its own local problem ``b_o = A_o theta_o +
+    eps_o`` (its own denominator ``e_o``) on the same windows, with
+    ``eps_o = e_o(x_r) V_o(k+r)``. Noise that is correlated between the
+    outputs (e.g. fed back through a controller), ``E[V_o conj(V_p)] =
+    c_op`` over a window, makes the rows' band values correlated:
+
+    .. math:: E[dG_{o,b} \overline{dG_{p,c}}] = F^2 c_{op}
+              [S_o^H D_{op} S_p]_{bc},\quad
+              D_{op} = \mathrm{diag}(e_o(x_r) \overline{e_p(x_r)}),
+
+    with ``S_o = A_o (A_o^H A_o)^-1`` at the band columns, and ``c_op`` from
+    the residuals of the two rows, whose expected product is ``E[r_p^H r_o]
+    = c_op tr((I - H_o) D_op (I - H_p))`` (``H`` the hat matrices):
+
+    .. math:: c_{op} = r_p^H r_o / \mathrm{tr}((I - H_o) D_{op} (I - H_p)).
+
+    For ``o == p`` this is route ``"eiv"`` (``tr((I - H) D) = sum_r |e_r|^2
+    (1 - h_r)``); ``method="lemma2"`` takes ``D = I`` (``c_oo = ||r||^2 /
+    q``, Lemma 2). Without a denominator both are the same.
+
+    Parameters
+    ----------
+    U : ndarray of shape (P, n_u N), complex
+        The input spectra of the fit (as :func:`variance_terms`).
+    Ys : sequence of ndarray of shape (P, M), complex
+        The output spectra of each row. Rows fitted on weighted experiments
+        (:func:`experiment_noise_weights`) give ``(U_o, Y_o)`` pairs instead
+        (``U`` then None): each row's regressors from its own spectra.
+    layout : LocalModelLayout
+    thetas : sequence of ndarray of shape (B, n_params), complex
+        The closed-form parameters of each row (NaN rows: NaN).
+    slow_bins : ndarray of shape (B,), int
+    method : {"eiv", "lemma2"}, default "eiv"
+    chunk_size : int, optional
+        Windows per batch.
+
+    Returns
+    -------
+    ndarray of shape (B, n_y, n_bands, n_y, n_bands), complex
+        ``J[k, o, b, p, c] = E[dG_o,b conj(dG_p,c)]``; Hermitian in ``(o, b),
+        (p, c)``. NaN at windows where a row's parameters are not finite.
+    """
+    if method not in ("eiv", "lemma2"):
+        raise ValueError(f"`method` must be 'eiv' or 'lemma2'; got {method!r}.")
+    pairs = [(U, Y) if U is not None else tuple(Y) for Y in Ys]
+    n_y, nb = len(pairs), layout.n_bands
+    slow_bins = np.asarray(slow_bins, dtype=int)
+    chunk = qr_chunk_size(layout) if chunk_size is None else max(1, chunk_size)
+    out = np.full((slow_bins.size, n_y, nb, n_y, nb), np.nan, dtype=complex)
+    with _single_threaded_blas():
+        for start in range(0, slow_bins.size, chunk):
+            bins = slow_bins[start:start + chunk]
+            rows = [_row_projection(Uo, Yo, layout, theta[start:start + chunk],
+                                    bins, method)
+                    for (Uo, Yo), theta in zip(pairs, thetas, strict=True)]
+            good = np.logical_and.reduce([row[0] for row in rows])
+            for o in range(n_y):
+                _, S_o, H_o, r_o, e_o = rows[o]
+                for p in range(o, n_y):
+                    _, S_p, H_p, r_p, e_p = rows[p]
+                    D = e_o * e_p.conj()  # (B, L)
+                    # tr((I - H_o) D (I - H_p))
+                    trace = (D.sum(axis=1)
+                             - np.einsum("brr,br->b", H_o, D)
+                             - np.einsum("br,brr->b", D, H_p)
+                             + np.einsum("bsr,br,brs->b", H_o, D, H_p))
+                    with np.errstate(invalid="ignore", divide="ignore"):
+                        level = np.sum(r_p.conj() * r_o, axis=1) / trace
+                    S_oh = np.conj(np.swapaxes(S_o, 1, 2))
+                    block = layout.F**2 * level[:, None, None] * (
+                        (S_oh * D[:, None, :]) @ S_p)
+                    block[~good] = np.nan
+                    out[start:start + chunk, o, :, p, :] = block
+                    if p != o:
+                        out[start:start + chunk, p, :, o, :] = np.conj(
+                            np.swapaxes(block, 1, 2))
+    _shrink_to_semidefinite(out.reshape(slow_bins.size, n_y * nb, n_y * nb), nb)
+    return out
+
+
+def _shrink_to_semidefinite(joint: np.ndarray, block: int) -> None:
+    """Scale the off-diagonal blocks of the windows' joint covariances (B, n,
+    n), in place, by the largest ``lambda <= 1`` that keeps them positive
+    semidefinite (:func:`cross_row_covariance`: each level ``c_op`` is
+    unbiased, but the estimated correlation of a window can exceed 1 in
+    magnitude where the rows' residuals are nearly proportional)."""
+    finite = np.isfinite(joint).all(axis=(1, 2))
+    if not finite.any():
+        return
+    with np.errstate(invalid="ignore"):
+        eig = np.linalg.eigvalsh(joint[finite])
+    bad = np.flatnonzero(finite)[eig[:, 0] < -1e-12 * np.abs(eig).max(axis=1)]
+    n = joint.shape[1]
+    own = np.kron(np.eye(n // block, dtype=bool), np.ones((block, block), bool))
+    for k in bad:
+        diagonal = np.where(own, joint[k], 0.0)
+        off = joint[k] - diagonal
+        try:  # O v = mu D v: D + lambda O >= 0 for lambda <= -1 / min mu
+            root = np.linalg.cholesky(diagonal)
+        except np.linalg.LinAlgError:
+            continue
+        inverse = np.linalg.inv(root)
+        mu = np.linalg.eigvalsh(inverse @ off @ inverse.conj().T)[0]
+        if mu < -1.0:
+            joint[k] = diagonal + off * (-1.0 / mu)
+
+
+def _row_projection(U, Y, layout, theta, slow_bins, method):
+    """What :func:`cross_row_covariance` needs of one row's windows: where
+    they are finite, ``S = A (A^H A)^-1`` at the band columns, the hat matrix,
+    the residual and the equation weights ``e(x_r)`` (ones for Lemma 2)."""
+    nb = layout.n_bands
+    A, b = local_regressor(U, Y, slow_bins, layout)
+    good = np.all(np.isfinite(theta), axis=1)
+    theta0 = np.where(good[:, None], theta, 0.0)
+    residual = b - np.einsum("blp,bp->bl", A, theta0)
+    A_eq, norms, _, AG = _window_solution(A, good)
+    S = np.ascontiguousarray(AG[:, :, :nb] / norms[:, None, :nb])
+    hat = AG @ np.conj(np.swapaxes(A_eq, 1, 2))
+    if method == "lemma2":
+        e = np.ones(residual.shape, dtype=complex)
+    else:  # rows are experiment-major
+        e = np.tile(_denominator_on_window(theta0, layout),
+                    (1, layout.n_experiments))
+    return good, S, hat, residual, e
+
+
+def _window_solution(A: np.ndarray, good: np.ndarray):
+    """The least-squares solution operator of each window's ``A``.
+
+    Returns ``A_eq`` (the columns scaled to unit norm), ``norms`` (B, p),
+    ``gram_inv = (A_eq^H A_eq)^-1`` and ``AG = A_eq gram_inv``: ``S = A (A^H
+    A)^-1 = AG / norms`` (columnwise) and the hat matrix ``H = AG A_eq^H``.
+    Windows not ``good`` get an identity Gram.
+    """
+    # equilibrated normal equations (condition numbers of a few hundred, see
+    # docs/method.md): S = A (A^H A)^-1 at the centre columns, leverages
+    norms = np.linalg.norm(A, axis=1)
+    zero_column = ~(norms > np.finfo(float).tiny)
+    norms = np.where(zero_column, 1.0, norms)
+    A_eq = A / norms[:, None, :]
+    # contiguous operands: numpy's stacked matmul uses BLAS only for them
+    gram = np.ascontiguousarray(np.conj(np.swapaxes(A_eq, 1, 2))) @ A_eq
+    identity = np.eye(gram.shape[-1])
+    gram = np.where(good[:, None, None], gram, identity)
+    # an exactly-zero column (e.g. the denominator of a zero output) gets a
+    # zero coefficient from the solvers: a unit pivot that couples to nothing
+    gram = np.where(zero_column[:, :, None] | zero_column[:, None, :], 0.0, gram)
+    gram[zero_column[:, :, None] & np.eye(gram.shape[-1], dtype=bool)] = 1.0
+    try:
+        gram_inv = np.linalg.inv(gram)
+    except np.linalg.LinAlgError:  # some window exactly singular: all by SVD
+        gram_inv = np.full_like(gram, np.nan)
+    # windows the normal equations cannot invert accurately (a rank-deficient
+    # denominator block on noise-free data, which the solvers keep as well
+    # posed): the pseudo-inverse of the truncated SVD, as the QR solver does
+    with np.errstate(invalid="ignore"):
+        error = np.max(np.abs(gram @ gram_inv - identity), axis=(1, 2))
+    poor = good & ~(error < INVERSE_TOL)
+    if poor.any():
+        gram_inv[poor] = _pseudo_inverse_gram(A_eq[poor])
+    return A_eq, norms, gram_inv, A_eq @ gram_inv
 
 
 def _pseudo_inverse_gram(A_eq: np.ndarray) -> np.ndarray:
