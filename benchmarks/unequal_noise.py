@@ -37,13 +37,17 @@ downsampling_factor=F)``, ``P`` (``--P``, default 2 and 3) experiments, each an
 independent random-phase multisine (``lrmfrf.signals.multisine``, same RMS),
 white noise of std ``sigma ratio**(p / (P - 1))`` in experiment ``p`` (the
 noisiest ``ratio`` times the quietest; ``sigma`` ``--snr`` dB below the
-noise-free output of experiment 0). Table per case: the median over the
-stages of the median over bins of predicted std / Monte-Carlo std (min-max
-over the stages), the 2-std coverage, the Monte-Carlo std over ``|G|`` and the
-fraction of fits weighted (``noise_weights_`` not all 1). About 3 minutes with
-``--runs 20``::
+noise-free output of experiment 0). ``snrR`` (e.g. ``snr4``): the inputs' RMS
+differ instead (experiment ``p`` scaled by ``R**(p / (P - 1))``) and each
+experiment is simulated at its own ``snr_db = --snr``, so its noise std scales
+with its input (the same SNR on days of different amplitudes). Table per
+case: the median over the stages of the median over bins of predicted std /
+Monte-Carlo std (min-max over the stages), the 2-std coverage, the Monte-Carlo
+std over ``|G|`` and the fraction of fits weighted (``noise_weights_`` not all
+1). About 3 minutes with ``--runs 20``::
 
-    python benchmarks/unequal_noise.py --siso --runs 20 --out benchmarks/results/x.txt
+    python benchmarks/unequal_noise.py --siso --runs 20 \\
+        --out benchmarks/results/x.txt
 """
 
 from __future__ import annotations
@@ -127,10 +131,15 @@ def siso_study(system, F, P, ratio, runs, snr_db, seed):
     N = M * F
     rng = np.random.default_rng(seed)
     u = np.stack([multisine(N, rng=rng) for _ in range(P)])  # (P, N)
+    if ratio.startswith("snr"):  # inputs of unequal RMS, each at its own SNR
+        u *= float(ratio[3:]) ** (np.arange(P) / (P - 1))[:, None]
     truth = true_frf(system, N)
     clean = np.stack([simulate(system, u_p, F, noise_std=0.0).y_l for u_p in u])
-    sigma = np.std(clean[0]) * 10 ** (-snr_db / 20)
-    scales = float(ratio) ** (np.arange(P) / (P - 1))
+    if ratio.startswith("snr"):
+        sigma, scales = 1.0, np.std(clean, axis=-1) * 10 ** (-snr_db / 20)
+    else:
+        sigma = np.std(clean[0]) * 10 ** (-snr_db / 20)
+        scales = float(ratio) ** (np.arange(P) / (P - 1))
     est = LRMBeyondNyquist()
     fits, stds, valids, weighted, seconds = [], [], [], [], []
     noise_rng = np.random.default_rng(1000 + seed)
@@ -162,15 +171,14 @@ def siso_main(args, emit):
          f"seeds {args.seeds}, {args.runs} runs, {args.snr} dB, M = {M}, "
          "independent random-phase multisines, default LRMBeyondNyquist(); "
          "ratio = noise std of the noisiest / quietest experiment (experiment p: "
-         f"ratio**(p/(P-1))); noise weights {args.noise_weights}")
+         "ratio**(p/(P-1)); 'snrR': input RMS R**(p/(P-1)), each at its own "
+         f"SNR); noise weights {args.noise_weights}")
     emit("| P | F | ratio | std/MC median (min-max) | coverage | "
          "MC std / abs(G) | weighted | fit s |")
     emit("|---|---|---|---|---|---|---|---|")
     for P in args.P:
         for F in args.F:
-            for ratio in args.ratios:
-                if ratio == "snr":
-                    continue
+            for ratio in args.ratios or ["1", "2", "4", "10", "snr4", "snr10"]:
                 res, secs = [], []
                 for seed in args.seeds:
                     system = random_stage(seed, downsampling_factor=F)[0].G_y4
@@ -193,7 +201,9 @@ def main(argv=None):
     parser.add_argument("--seeds", type=int, nargs="+", default=[3, 4, 5])
     parser.add_argument("--F", type=int, nargs="+", default=[2, 3])
     parser.add_argument("--kinds", nargs="+", default=["orth", "one"])
-    parser.add_argument("--ratios", nargs="+", default=["1", "2", "4", "10", "snr"])
+    parser.add_argument("--ratios", nargs="+", default=None,
+                        help="default 1 2 4 10 snr (MIMO), 1 2 4 10 snr4 snr10 "
+                             "(--siso)")
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--noise-weights", choices=["auto", "off"], default="auto")
     parser.add_argument("--siso", action="store_true",
@@ -225,7 +235,7 @@ def main(argv=None):
     emit("|---|---|---|---|---|---|---|---|")
     for kind in args.kinds:
         for F in args.F:
-            for ratio in args.ratios:
+            for ratio in args.ratios or ["1", "2", "4", "10", "snr"]:
                 diag, off, cov_d, cov_o, rel, secs = [], [], [], [], [], []
                 for seed in args.seeds:
                     system = random_stage(seed, mimo=True)[0].G[0:2, 0:2]
