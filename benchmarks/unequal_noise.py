@@ -30,6 +30,24 @@ Run (about 12 minutes)::
 
 ``--noise-weights off`` fits with the experiments unweighted (the pooled fit
 of earlier versions, for comparison).
+
+``--siso``: SISO records with several experiments instead (records of
+different days): ``G_y4`` of the closed-loop ``lrmfrf.plants.random_stage(seed,
+downsampling_factor=F)``, ``P`` (``--P``, default 2 and 3) experiments, each an
+independent random-phase multisine (``lrmfrf.signals.multisine``, same RMS),
+white noise of std ``sigma ratio**(p / (P - 1))`` in experiment ``p`` (the
+noisiest ``ratio`` times the quietest; ``sigma`` ``--snr`` dB below the
+noise-free output of experiment 0). ``snrR`` (e.g. ``snr4``): the inputs' RMS
+differ instead (experiment ``p`` scaled by ``R**(p / (P - 1))``) and each
+experiment is simulated at its own ``snr_db = --snr``, so its noise std scales
+with its input (the same SNR on days of different amplitudes). Table per
+case: the median over the stages of the median over bins of predicted std /
+Monte-Carlo std (min-max over the stages), the 2-std coverage, the Monte-Carlo
+std over ``|G|`` and the fraction of fits weighted (``noise_weights_`` not all
+1). About 3 minutes with ``--runs 20``::
+
+    python benchmarks/unequal_noise.py --siso --runs 20 \\
+        --out benchmarks/results/x.txt
 """
 
 from __future__ import annotations
@@ -107,6 +125,75 @@ def study(system, kind, F, ratio, runs, snr_db, seed):
     return out, np.median(seconds)
 
 
+def siso_study(system, F, P, ratio, runs, snr_db, seed):
+    """(ratio, coverage, mc/|G|, weighted fraction) of one SISO system and
+    the median fit time."""
+    N = M * F
+    rng = np.random.default_rng(seed)
+    u = np.stack([multisine(N, rng=rng) for _ in range(P)])  # (P, N)
+    if ratio.startswith("snr"):  # inputs of unequal RMS, each at its own SNR
+        u *= float(ratio[3:]) ** (np.arange(P) / (P - 1))[:, None]
+    truth = true_frf(system, N)
+    clean = np.stack([simulate(system, u_p, F, noise_std=0.0).y_l for u_p in u])
+    if ratio.startswith("snr"):
+        sigma, scales = 1.0, np.std(clean, axis=-1) * 10 ** (-snr_db / 20)
+    else:
+        sigma = np.std(clean[0]) * 10 ** (-snr_db / 20)
+        scales = float(ratio) ** (np.arange(P) / (P - 1))
+    est = LRMBeyondNyquist()
+    fits, stds, valids, weighted, seconds = [], [], [], [], []
+    noise_rng = np.random.default_rng(1000 + seed)
+    for _ in range(runs):
+        y = clean + sigma * scales[:, None] * noise_rng.standard_normal(clean.shape)
+        start = time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            est.fit(list(u), list(y), F)
+        seconds.append(time.perf_counter() - start)
+        fits.append(est.frf_)
+        stds.append(est.frf_std_)
+        valids.append(est.valid_)
+        weighted.append(bool(np.any(est.noise_weights_ != 1.0)))
+    fits, stds = np.array(fits), np.array(stds)
+    valid = np.array(valids).all(axis=0) & np.isfinite(truth)
+    valid[0] = valid[-1] = False  # DC / Nyquist: real-valued bins
+    mc = np.sqrt(np.sum(np.abs(fits - fits.mean(axis=0)) ** 2, axis=0)
+                 / (runs - 1))
+    predicted = np.sqrt(np.mean(stds**2, axis=0))
+    inside = np.abs(fits - truth) < 2 * stds
+    return ((np.median(predicted[valid] / mc[valid]), np.mean(inside[:, valid]),
+             np.median(mc[valid] / np.abs(truth[valid])), np.mean(weighted)),
+            np.median(seconds))
+
+
+def siso_main(args, emit):
+    emit(f"random_stage(seed, downsampling_factor=F)[0].G_y4 (closed loop), "
+         f"seeds {args.seeds}, {args.runs} runs, {args.snr} dB, M = {M}, "
+         "independent random-phase multisines, default LRMBeyondNyquist(); "
+         "ratio = noise std of the noisiest / quietest experiment (experiment p: "
+         "ratio**(p/(P-1)); 'snrR': input RMS R**(p/(P-1)), each at its own "
+         f"SNR); noise weights {args.noise_weights}")
+    emit("| P | F | ratio | std/MC median (min-max) | coverage | "
+         "MC std / abs(G) | weighted | fit s |")
+    emit("|---|---|---|---|---|---|---|---|")
+    for P in args.P:
+        for F in args.F:
+            for ratio in args.ratios or ["1", "2", "4", "10", "snr4", "snr10"]:
+                res, secs = [], []
+                for seed in args.seeds:
+                    system = random_stage(seed, downsampling_factor=F)[0].G_y4
+                    r, sec = siso_study(system, F, P, ratio, args.runs, args.snr,
+                                        seed)
+                    res.append(r)
+                    secs.append(sec)
+                res = np.array(res)
+                emit(f"| {P} | {F} | {ratio} | {np.median(res[:, 0]):.2f} "
+                     f"({res[:, 0].min():.2f}-{res[:, 0].max():.2f}) | "
+                     f"{100 * np.mean(res[:, 1]):.1f} % | "
+                     f"{np.median(res[:, 2]):.3g} | {100 * np.mean(res[:, 3]):.0f} % | "
+                     f"{np.median(secs):.3f} |")
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=20)
@@ -114,9 +201,14 @@ def main(argv=None):
     parser.add_argument("--seeds", type=int, nargs="+", default=[3, 4, 5])
     parser.add_argument("--F", type=int, nargs="+", default=[2, 3])
     parser.add_argument("--kinds", nargs="+", default=["orth", "one"])
-    parser.add_argument("--ratios", nargs="+", default=["1", "2", "4", "10", "snr"])
+    parser.add_argument("--ratios", nargs="+", default=None,
+                        help="default 1 2 4 10 snr (MIMO), 1 2 4 10 snr4 snr10 "
+                             "(--siso)")
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--noise-weights", choices=["auto", "off"], default="auto")
+    parser.add_argument("--siso", action="store_true",
+                        help="SISO records with P experiments (see above)")
+    parser.add_argument("--P", type=int, nargs="+", default=[2, 3])
     args = parser.parse_args(argv)
     if args.noise_weights == "off":  # the pooled fit of earlier versions
         import lrmfrf.estimators.local as local
@@ -128,6 +220,12 @@ def main(argv=None):
         print(text, flush=True)
         lines.append(text)
 
+    if args.siso:
+        siso_main(args, emit)
+        if args.out is not None:
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            args.out.write_text("\n".join(lines) + "\n")
+        return
     emit(f"random_stage(seed, mimo=True)[0].G[0:2, 0:2], seeds {args.seeds}, "
          f"{args.runs} runs, {args.snr} dB, M = {M}, P = 2, default "
          "LRMBeyondNyquist(); ratio = noise std of experiment 1 / experiment 0 "
@@ -137,7 +235,7 @@ def main(argv=None):
     emit("|---|---|---|---|---|---|---|---|")
     for kind in args.kinds:
         for F in args.F:
-            for ratio in args.ratios:
+            for ratio in args.ratios or ["1", "2", "4", "10", "snr"]:
                 diag, off, cov_d, cov_o, rel, secs = [], [], [], [], [], []
                 for seed in args.seeds:
                     system = random_stage(seed, mimo=True)[0].G[0:2, 0:2]

@@ -1552,12 +1552,15 @@ def experiment_noise_weights(spectra, layout: LocalModelLayout, *,
     """
     weights, problem = _noise_weights(spectra, layout, iterations)
     if problem is not None:
+        siso = layout.n_inputs == 1 and spectra.outputs.shape[1] == 1
+        where = "" if siso else f" in output row(s) {problem[0]}"
+        per_row = "" if siso else " per output row"
         warnings.warn(
-            f"The experiments' residual levels in output row(s) {problem[0]} "
+            f"The experiments' residual levels{where} "
             f"differ in a way noise alone does not explain ({problem[1]}; "
             "model misfit that differs between the experiments, e.g. one "
-            "with an input missing?): fitted with one pooled noise level "
-            "per output row, as for equal noise. Raise the local degrees "
+            "with an input missing?): fitted with one pooled noise level"
+            f"{per_row}, as for equal noise. Raise the local degrees "
             "or half_window, or check the experiments.",
             UserWarning,
             stacklevel=stacklevel,

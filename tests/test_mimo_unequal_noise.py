@@ -157,16 +157,11 @@ def test_weighted_routes_agree(system):
                                    atol=1e-12 * np.abs(local.transient).max())
 
 
-def test_siso_and_single_experiment_are_not_weighted(system):
-    """SISO records (also several experiments) and P = 1 are never weighted."""
+def test_single_experiment_is_not_weighted(system):
+    """P = 1 is never weighted (SISO records with several experiments are:
+    ``tests/test_siso_unequal_noise.py``)."""
     F = 2
     rng = np.random.default_rng(9)
-    u = np.stack([multisine(M * F, rng=rng) for _ in range(2)])[:, None]
-    siso = system[0, 0]
-    y = np.stack([simulate(siso, u_p[0], F, noise_std=s, rng=p).y_l
-                  for p, (u_p, s) in enumerate(zip(u, [1e-3, 1e-1], strict=True))])
-    est = fit(u, y[:, None], F)
-    assert np.array_equal(est.noise_weights_, np.ones((2, 1)))
     u1 = orthogonal_multisines(2, M * F, rng=1)[:1]
     y1 = noisy(noise_free(system, u1, F), [1.0], rng)
     est = fit(u1, y1, F, half_window=40)

@@ -246,12 +246,13 @@ class _LocalModelEstimator(_BaseFRFEstimator):
         near = nearly_dependent_windows(spectra, layout)
         if near is not None and not near.any():
             near = None
-        # MIMO experiments with clearly unequal noise levels (per output row):
-        # those rows are fitted on experiments weighted to equal levels (None:
-        # the levels agree, the unweighted fit)
+        # experiments with clearly unequal noise levels (per output row; SISO
+        # and MIMO, P > 1): those rows are fitted on experiments weighted to
+        # equal levels (None: the levels agree, or one experiment: the
+        # unweighted fit)
         # (not when every window is nearly dependent: nothing is fitted)
         weights = None
-        if (n_u > 1 or n_y > 1) and (near is None or not near.all()):
+        if near is None or not near.all():
             weights = experiment_noise_weights(spectra, layout, stacklevel=3)
         self._reset_refinement()
         refines = self._refines(params)
@@ -317,8 +318,9 @@ class _LocalModelEstimator(_BaseFRFEstimator):
                 spectra, layout, u_exponent, y_exponent, backend, std_method,
                 near, weights,
             )
-        self.noise_weights_ = (np.ones((P, n_y)) if weights is None
-                               else weights.copy())
+        weights = np.ones((P, n_y)) if weights is None else weights.copy()
+        # SISO: no output axis, as noise_variance_ and transient_
+        self.noise_weights_ = weights[:, 0] if n_u == n_y == 1 else weights
         # frf_joint_cov_ on first access (streamed closed forms: eiv, Lemma 2)
         self.__dict__.pop("_frf_joint_cov_cache_", None)
         self._joint_cov_source_ = (self._local_fit_source_
@@ -545,23 +547,24 @@ default="eiv"
         In an output row whose experiments are weighted (``noise_weights_``)
         it is the variance of the weighted records' noise: about the mean of
         the experiments' levels.
-    noise_weights_ : ndarray of shape (P, n_y)
-        Weight of each experiment in the fit of each output row: 1 unless
-        the experiments' noise levels in a row clearly differ (MIMO, ``P >
-        1``; by more than 1.5x in variance and well beyond the spread of
-        their estimate, :func:`lrmfrf.uncertainty.experiment_noise_weights`).
-        Then that row is fitted on the experiments' inputs and outputs both
-        scaled by ``1 / sqrt(level / mean level)`` (the FRF is unchanged,
-        the noise levels equalised), so that ``frf_std_``, which assumes one
-        noise level per row, is calibrated, and the noisier experiments
-        count less. Without it the std was 0.61-0.81x the Monte-Carlo std on
-        some entries and up to 5.9x on others when one input was excited at
-        a time (``benchmarks/unequal_noise.py``,
-        ``benchmarks/results/unequal_noise_before_runs20.txt``). SISO fits
-        and ``P = 1``: all ones. All ones too, with a ``UserWarning``, when
-        the levels differ in a way noise does not explain (the estimate at
-        its bound, not settling, or too few residual dof; e.g. model misfit
-        that differs between the experiments): the pooled fit.
+    noise_weights_ : ndarray of shape (P,) or (P, n_y)
+        Weight of each experiment in the fit of each output row (SISO: of
+        the one row, no output axis, as ``transient_``): 1 unless the
+        experiments' noise levels in a row clearly differ (``P > 1``; by more
+        than 1.5x in variance and well beyond the spread of their estimate,
+        :func:`lrmfrf.uncertainty.experiment_noise_weights`). Then that row
+        is fitted on the experiments' inputs and outputs both scaled by ``1 /
+        sqrt(level / mean level)`` (the FRF is unchanged, the noise levels
+        equalised), so that ``frf_std_``, which assumes one noise level per
+        row, is calibrated, and the noisier experiments count less. Without
+        it the std was 0.61-0.81x the Monte-Carlo std on some MIMO entries
+        and up to 5.9x on others when one input was excited at a time, and
+        0.55-0.75x on SISO records whose experiments had inputs 4-10x apart in RMS, each
+        at its own SNR (``benchmarks/unequal_noise.py``, ``--siso``). ``P =
+        1``: all ones. All ones too, with a ``UserWarning``, when the levels
+        differ in a way noise does not explain (the estimate at its bound,
+        not settling, or too few residual dof; e.g. model misfit that differs
+        between the experiments): the pooled fit.
     transient_ : ndarray of shape (M//2+1,) or (P, M//2+1), complex
         Transient term in the slow output DFT at each window centre; (P, n_y,
         M//2+1) when not SISO.
