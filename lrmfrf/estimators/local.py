@@ -559,9 +559,9 @@ default="eiv"
         row, is calibrated, and the noisier experiments count less. Without
         it the std was 0.61-0.81x the Monte-Carlo std on some MIMO entries
         and up to 5.9x on others when one input was excited at a time, and
-        0.55-0.75x on SISO records whose experiments had inputs 4-10x apart in RMS, each
-        at its own SNR (``benchmarks/unequal_noise.py``, ``--siso``). ``P =
-        1``: all ones. All ones too, with a ``UserWarning``, when the levels
+        0.55-0.75x on SISO records whose experiments had inputs 4-10x apart
+        in RMS, each at its own SNR (``benchmarks/unequal_noise.py``,
+        ``--siso``). ``P = 1``: all ones. All ones too, with a ``UserWarning``, when the levels
         differ in a way noise does not explain (the estimate at its bound,
         not settling, or too few residual dof; e.g. model misfit that differs
         between the experiments): the pooled fit.
