@@ -1066,21 +1066,7 @@ def _iter_weighted_fit_rows(spectra, layout, std_method, backend, weights):
     experiment_noise_weights`) fitted one by one on their weighted spectra
     (the input weights differ between rows), after the other rows together
     (unchanged). ``weights`` None: all rows at once, as before."""
-    n_y = spectra.outputs.shape[1]
-    if weights is None:
-        groups = [(list(range(n_y)), spectra)]
-    else:
-        weighted = [o for o in range(n_y) if np.any(weights[:, o] != 1.0)]
-        plain = [o for o in range(n_y) if o not in weighted]
-        groups = [(plain, OneSidedSpectra(spectra.inputs, spectra.outputs[:, plain],
-                                          spectra.n_samples, spectra.F))] \
-            if plain else []
-        for o in weighted:
-            scale = weights[:, o, None, None]
-            groups.append(([o], OneSidedSpectra(
-                spectra.inputs * scale, spectra.outputs[:, [o]] * scale,
-                spectra.n_samples, spectra.F)))
-    for rows, part in groups:
+    for rows, part in _row_groups(spectra, weights):
         chunks = iter_calibrated_fit_rows(part, layout, std_method,
                                           return_cov=True, backend=backend)
         try:
@@ -1089,6 +1075,28 @@ def _iter_weighted_fit_rows(spectra, layout, std_method, backend, weights):
                                     for o, fit in zip(rows, fits, strict=True)]
         finally:  # (the generator holds a single-threaded-BLAS section)
             chunks.close()
+        del part, chunks  # before the next row's copy is made
+
+
+def _row_groups(spectra, weights):
+    """``(rows, spectra)`` of :func:`_iter_weighted_fit_rows`: the unweighted
+    rows together, then each weighted row on its own weighted copy of the
+    spectra, made when it is reached (one copy of the inputs' spectra alive
+    at a time: each is the size of the records' DFTs)."""
+    n_y = spectra.outputs.shape[1]
+    if weights is None:
+        yield list(range(n_y)), spectra
+        return
+    weighted = [o for o in range(n_y) if np.any(weights[:, o] != 1.0)]
+    plain = [o for o in range(n_y) if o not in weighted]
+    if plain:
+        yield plain, OneSidedSpectra(spectra.inputs, spectra.outputs[:, plain],
+                                     spectra.n_samples, spectra.F)
+    for o in weighted:
+        scale = weights[:, o, None, None]
+        yield [o], OneSidedSpectra(spectra.inputs * scale,
+                                   spectra.outputs[:, [o]] * scale,
+                                   spectra.n_samples, spectra.F)
 
 
 def _unweighted(fit, weights, o):
