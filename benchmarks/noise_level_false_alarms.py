@@ -129,9 +129,11 @@ def main(argv=None):
 
     import lrmfrf.uncertainty as unc
 
-    test = ("jackknife, tail %g" % unc.EQUAL_NOISE_TAIL
-            if hasattr(unc, "EQUAL_NOISE_TAIL") else "first-order dof, z %g"
-            % unc.EQUAL_NOISE_Z)
+    new = hasattr(unc.ExperimentNoiseLevels, "__dataclass_fields__") and (
+        "cov" in unc.ExperimentNoiseLevels.__dataclass_fields__)
+    test = (f"{'quadratic-form covariance, linear' if new else 'Satterthwaite dof, log'}"
+            f" difference > {unc.EQUAL_NOISE_Z:g} sd and ratio > "
+            f"{unc.EQUAL_NOISE_RATIO:g}")
     emit(f"{args.records} records per ratio, seed set {args.set!r}, M = {M}, "
          f"test: {test} ({unc.__file__}), {time.perf_counter() - start:.0f} s")
     emit("W: a row weighted, !: flagged but warned instead (pooled fit); "

@@ -1080,13 +1080,15 @@ EQUAL_NOISE_RATIO = 1.5
 #: standard deviations of their difference if they were equal
 #: (:class:`ExperimentNoiseLevels` ``cov``: the exact variance of the
 #: residual energies' quadratic forms, the residual rows' correlation
-#: included). On equal-noise records of random stages (SISO open and closed
-#: loop, 2 x 2; P = 2-4; 3-60 residual dof per window; 25-70 dB; 385 records,
-#: ``benchmarks/noise_level_false_alarms.py --set tune``) the largest
-#: difference was 3.6 of them; the first-order spread of earlier versions
-#: (Satterthwaite, the residual rows taken as independent) was 1.5x (53 dof
-#: per window) to 11x (5 dof) too low and flagged most equal-noise records
-#: below about 20 dof (review30) with a threshold of 6.
+#: included). Chosen on equal-noise records of random stages (SISO open and
+#: closed loop, 2 x 2; P = 2-4; 3-60 residual dof per window; 25-70 dB; 385
+#: records, the ``tune`` seeds of ``benchmarks/noise_level_false_alarms.py``):
+#: the largest difference was 3.6 of them (a normal-like spread, no heavy
+#: tail at few dof; the log ratio has one: a level estimate near zero). The
+#: spread of earlier versions (Satterthwaite, the residual rows taken as
+#: independent, though the residual projector has rank dof) was 1.5x (53
+#: residual dof per window) to 11x (5 dof) too low and flagged most
+#: equal-noise records below about 20 dof even at 6 of it (review30).
 EQUAL_NOISE_Z = 4.0
 
 #: :func:`experiment_noise_weights`: re-estimations of the levels on the
@@ -1100,10 +1102,11 @@ NOISE_WEIGHT_ITERATIONS = 16
 WEIGHT_TOL = 0.005
 
 #: :func:`experiment_noise_weights`: no weighting with fewer residual
-#: degrees of freedom per window than this many per experiment (random
-#: first-order layouts with equal noise and one residual dof per window
-#: were weighted by factors of 1e3; unequal levels with 4-7 dof for three
-#: experiments were still weighted correctly).
+#: degrees of freedom per window than this many per experiment (a guard:
+#: with the level test of review30 equal noise is not flagged there; with
+#: one residual dof a window's normalised energies equal its gains and the
+#: ratio is exactly 1. Earlier, random first-order layouts with equal noise
+#: and one residual dof per window were weighted by factors of 1e3).
 MIN_NOISE_LEVEL_DOF = 1
 
 #: :func:`experiment_noise_levels`: a window whose residual is below this
@@ -1160,10 +1163,13 @@ def experiment_noise_levels(spectra, layout: LocalModelLayout, *,
     ``E ||r_p||^2 = sigma^2 sum_j c_j sum_{r in p, s in j} |R_rs|^2 w_s``
     (first order, the errors-in-variables noise model of :mod:`this module
     <lrmfrf.uncertainty>` with experiment ``j``'s noise variance ``c_j
-    sigma^2``). Each window is normalised by its own pooled level (the
-    noise spectrum may be coloured; a frequency-independent ratio between
-    the experiments is assumed) and the linear equations for ``c``, summed
-    over the windows, are solved. The columns the output rows share (system
+    sigma^2``). Each window's energies are normalised by its own pooled
+    level (the noise spectrum may be coloured; a frequency-independent
+    ratio between the experiments is assumed) and the linear equations for
+    ``c``, summed over the windows, are solved. The covariance of ``c`` at
+    equal levels (the test of :func:`unequal_noise_rows`) is that of
+    Gaussian quadratic forms: ``cov(||r_p||^2, ||r_q||^2) = sigma^4 tr(R D_p
+    R W R D_q R W)`` (``W = diag(w)``, ``D_p`` experiment ``p``'s rows). The columns the output rows share (system
     and transient) are factored once per weighting, each row adds its
     denominator columns (about 7-9 ms for 2 x 2, P = 2, 16 windows).
 
