@@ -1169,9 +1169,9 @@ def experiment_noise_levels(spectra, layout: LocalModelLayout, *,
     ``c``, summed over the windows, are solved. The covariance of ``c`` at
     equal levels (the test of :func:`unequal_noise_rows`) is that of
     Gaussian quadratic forms: ``cov(||r_p||^2, ||r_q||^2) = sigma^4 tr(R D_p
-    R W R D_q R W)`` (``W = diag(w)``, ``D_p`` experiment ``p``'s rows). The columns the output rows share (system
-    and transient) are factored once per weighting, each row adds its
-    denominator columns (about 17 ms for 2 x 2, P = 2, 16 windows, of which
+    R W R D_q R W)`` (``W = diag(w)``, ``D_p`` experiment ``p``'s rows).
+    The columns the output rows share (system and transient) are factored
+    once per weighting, each row adds its denominator columns (about 17 ms for 2 x 2, P = 2, 16 windows, of which
     the covariance about 7 ms).
 
     Parameters
