@@ -1081,9 +1081,9 @@ EQUAL_NOISE_RATIO = 1.5
 #: (:class:`ExperimentNoiseLevels` ``cov``: the exact variance of the
 #: residual energies' quadratic forms, the residual rows' correlation
 #: included). Chosen on equal-noise records of random stages (SISO open and
-#: closed loop, 2 x 2; P = 2-4; 3-60 residual dof per window; 25-70 dB; 385
-#: records, the ``tune`` seeds of ``benchmarks/noise_level_false_alarms.py``):
-#: the largest difference was 3.6 of them (a normal-like spread, no heavy
+#: closed loop, 2 x 2; P = 2-4; 3-60 residual dof per window; 25-70 dB; the
+#: 385 records of ``benchmarks/noise_level_false_alarms.py --records 400
+#: --set tune``): the largest difference was 3.6 of them (a normal-like spread, no heavy
 #: tail at few dof; the log ratio has one: a level estimate near zero). The
 #: spread of earlier versions (Satterthwaite, the residual rows taken as
 #: independent, though the residual projector has rank dof) was 1.5x (53
