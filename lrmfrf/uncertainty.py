@@ -1228,20 +1228,19 @@ def calibrated_refined_fit(U, Y, layout: LocalModelLayout, closed_fit, refined_f
 EQUAL_NOISE_RATIO = 1.5
 
 #: :func:`experiment_noise_weights`: the levels must also differ by this many
-#: standard deviations of their estimate (log scale, the spread from the
-#: effective dof, which takes the residual rows as independent). That spread
-#: is up to about 1.7x low: on equal-noise records (M = 400, three random
-#: 2x2 stages, both excitations of ``benchmarks/unequal_noise.py``, F = 2, 3,
-#: 360 records) the 90 % quantile of the gap over it was 1.8-2.9 (1.64 for a
-#: normal) and its largest value 5.8; the 240 equal-noise records of the
-#: benchmark (other noise draws) had one false alarm at 6.6. A false alarm
-#: gives a weighted fit (its std within the Monte-Carlo spread there) instead
-#: of the unweighted one. With few residual dof per window the spread is far
-#: lower than that (three experiments, first-order records of
-#: tests/test_noise_weight_guard.py: 1.5x at 53 dof, 2.1x at 29, 2.6x at 17,
-#: 11x at 5) and equal-noise records are often flagged below about 20 dof
-#: (docs/method.md section 5, review30).
-EQUAL_NOISE_Z = 6.0
+#: standard deviations of their difference if they were equal
+#: (:class:`ExperimentNoiseLevels` ``cov``: the exact variance of the
+#: residual energies' quadratic forms, the residual rows' correlation
+#: included). Chosen on equal-noise records of random stages (SISO open and
+#: closed loop, 2 x 2; P = 2-4; 3-60 residual dof per window; 25-70 dB; the
+#: 385 records of ``benchmarks/noise_level_false_alarms.py --records 400
+#: --set tune``): the largest difference was 3.6 of them (a normal-like spread, no heavy
+#: tail at few dof; the log ratio has one: a level estimate near zero). The
+#: spread of earlier versions (Satterthwaite, the residual rows taken as
+#: independent, though the residual projector has rank dof) was 1.5x (53
+#: residual dof per window) to 11x (5 dof) too low and flagged most
+#: equal-noise records below about 20 dof even at 6 of it (review30).
+EQUAL_NOISE_Z = 4.0
 
 #: :func:`experiment_noise_weights`: re-estimations of the levels on the
 #: weighted fit; without convergence by then the rows are not weighted.
@@ -1254,10 +1253,11 @@ NOISE_WEIGHT_ITERATIONS = 16
 WEIGHT_TOL = 0.005
 
 #: :func:`experiment_noise_weights`: no weighting with fewer residual
-#: degrees of freedom per window than this many per experiment (random
-#: first-order layouts with equal noise and one residual dof per window
-#: were weighted by factors of 1e3; unequal levels with 4-7 dof for three
-#: experiments were still weighted correctly).
+#: degrees of freedom per window than this many per experiment (a guard:
+#: with the level test of review30 equal noise is not flagged there; with
+#: one residual dof a window's normalised energies equal its gains and the
+#: ratio is exactly 1. Earlier, random first-order layouts with equal noise
+#: and one residual dof per window were weighted by factors of 1e3).
 MIN_NOISE_LEVEL_DOF = 1
 
 #: :func:`experiment_noise_levels`: a window whose residual is below this
@@ -1280,16 +1280,24 @@ class ExperimentNoiseLevels:
         Each experiment's noise variance over the mean of the experiments'
         (per output row; 1 for equal levels).
     dof : ndarray of shape (P, n_y)
-        Effective complex degrees of freedom of each level's estimate (its
-        relative variance is about ``1 / dof``).
+        Effective complex degrees of freedom of each level's estimate at
+        equal levels: ``1 / cov[p, p]`` (its relative variance); 0 where
+        there is no estimate.
     clamped : ndarray of shape (n_y,), bool, optional
         Rows whose smallest level estimate sat at its lower bound (1e-3 of
         the largest): the levels are not a noise estimate there.
+    cov : ndarray of shape (P, P, n_y), optional
+        Covariance of the level estimates (``ratio`` before its
+        normalisation, about 1 at equal levels, of the fit, weighted or not)
+        if the fit's experiments had equal noise levels: exact for Gaussian
+        noise given the fits' residual projectors, the residual rows'
+        correlation included (:func:`_noise_levels_of_row`).
     """
 
     ratio: np.ndarray
     dof: np.ndarray
     clamped: np.ndarray | None = None
+    cov: np.ndarray | None = None
 
 
 def experiment_noise_levels(spectra, layout: LocalModelLayout, *,
@@ -1306,12 +1314,16 @@ def experiment_noise_levels(spectra, layout: LocalModelLayout, *,
     ``E ||r_p||^2 = sigma^2 sum_j c_j sum_{r in p, s in j} |R_rs|^2 w_s``
     (first order, the errors-in-variables noise model of :mod:`this module
     <lrmfrf.uncertainty>` with experiment ``j``'s noise variance ``c_j
-    sigma^2``). Each window is normalised by its own pooled level (the
-    noise spectrum may be coloured; a frequency-independent ratio between
-    the experiments is assumed) and the linear equations for ``c``, summed
-    over the windows, are solved. The columns the output rows share (system
-    and transient) are factored once per weighting, each row adds its
-    denominator columns (about 7-9 ms for 2 x 2, P = 2, 16 windows).
+    sigma^2``). Each window's energies are normalised by its own pooled
+    level (the noise spectrum may be coloured; a frequency-independent
+    ratio between the experiments is assumed) and the linear equations for
+    ``c``, summed over the windows, are solved. The covariance of ``c`` at
+    equal levels (the test of :func:`unequal_noise_rows`) is that of
+    Gaussian quadratic forms: ``cov(||r_p||^2, ||r_q||^2) = sigma^4 tr(R D_p
+    R W R D_q R W)`` (``W = diag(w)``, ``D_p`` experiment ``p``'s rows).
+    The columns the output rows share (system and transient) are factored
+    once per weighting, each row adds its denominator columns (about 17 ms for 2 x 2, P = 2, 16 windows, of which
+    the covariance about 7 ms).
 
     Parameters
     ----------
@@ -1347,6 +1359,7 @@ def experiment_noise_levels(spectra, layout: LocalModelLayout, *,
     ratio = np.ones((P, n_y))
     dof = np.zeros((P, n_y))
     clamped = np.zeros(n_y, dtype=bool)
+    cov = np.zeros((P, P, n_y))
     bases = {}  # the shared columns' factorisation, per weighting of the rows
     with _single_threaded_blas():
         for o in range(n_y):
@@ -1359,11 +1372,13 @@ def experiment_noise_levels(spectra, layout: LocalModelLayout, *,
                     shared if weights is None else shared * rows[:, None])
             levels = _noise_levels_of_row(bases[key], A_d, b_o, layout)
             if levels is not None:
-                ratio[:, o], dof[:, o], clamped[o] = levels
+                ratio[:, o], clamped[o], cov[..., o] = levels
+                with np.errstate(divide="ignore"):
+                    dof[:, o] = 1.0 / np.diagonal(cov[..., o])
                 if weights is not None:  # the records' levels
                     ratio[:, o] /= weights[:, o] ** 2
                     ratio[:, o] /= ratio[:, o].mean()
-    return ExperimentNoiseLevels(ratio, dof, clamped)
+    return ExperimentNoiseLevels(ratio, dof, clamped, cov)
 
 
 def _noise_level_regressors(parts, layout):
@@ -1419,7 +1434,7 @@ class _SharedColumns:
 
 
 def _noise_levels_of_row(shared, A, b, layout):
-    """``(ratio, dof)`` of one output row from the windows' denominator
+    """``(ratio, clamped, cov)`` of one output row from the windows' denominator
     columns ``A`` ``(B, P L, R_e)`` and measured values ``b`` ``(B, P L)``
     (the other columns in ``shared``, a :class:`_SharedColumns`).
 
@@ -1476,25 +1491,38 @@ def _noise_levels_of_row(shared, A, b, layout):
     if not keep.any():
         return None
     gain, energy, level = gain[keep], energy[keep], level[keep]
-    ratio = np.linalg.lstsq((gain / level[:, None, None]).sum(axis=0),
-                            (energy / level[:, None]).sum(axis=0), rcond=None)[0]
+    # each window normalised by its pooled level: E energy_b = gain_b c, and
+    # c = G^-1 sum_b energy_b with G = sum_b gain_b
+    G_inv = np.linalg.pinv(gain.sum(axis=0))
+    ratio = G_inv @ (energy / level[:, None]).sum(axis=0)
     clamped = bool(np.min(ratio) <= 1e-3 * np.max(ratio))
     ratio = np.maximum(ratio, 1e-3 * np.max(ratio))
     ratio /= ratio.mean()
-    # effective dof of each experiment's residual energy (Satterthwaite, the
-    # rows taken as independent): E |r_r|^2 ~ w_r (1 - h_r)
-    diagonal = np.real(np.diagonal(projector, axis1=1, axis2=2))  # 1 - h_r
-    expected = (w[keep] * diagonal[keep]).reshape(-1, P, L) / level[:, None, None]
-    dof = expected.sum(axis=(0, 2)) ** 2 / (expected**2).sum(axis=(0, 2))
-    return ratio, dof, clamped
+    # The covariance of the (normalised) energies if the levels were equal
+    # (complex Gaussian noise of covariance diag(w), the pooled level 1):
+    # cov(||r_p||^2, ||r_q||^2) = tr(R D_p R W R D_q R W) = sum_{r in p, s in
+    # q} |T_rs|^2 with T = R W R, W = diag(w), D_p experiment p's rows. The
+    # residual rows are far from independent (R has rank dof), which the
+    # Satterthwaite count over rows of earlier versions ignored: it put the
+    # spread of the levels 1.5-11x too low (review30).
+    T = np.matmul(projector[keep] * w[keep][:, None, :], projector[keep])
+    parts = T.view(np.float64).reshape(-1, P, L, P, L, 2)
+    energy_cov = np.einsum("bpljsc,bpljsc->pj", parts, parts)
+    # at equal levels c = 1 and cov(c) = G^-1 C G^-T (the windows
+    # independent)
+    return ratio, clamped, G_inv @ energy_cov @ G_inv.T
 
 
 def unequal_noise_rows(levels: ExperimentNoiseLevels | None) -> np.ndarray:
     """Output rows whose experiments' noise levels clearly differ.
 
     A row is flagged when two of its experiments' estimated variances differ
-    by more than :data:`EQUAL_NOISE_RATIO` and by :data:`EQUAL_NOISE_Z`
-    standard deviations of their (log) estimate.
+    by a factor of more than :data:`EQUAL_NOISE_RATIO` and by more than
+    :data:`EQUAL_NOISE_Z` standard deviations of their difference at equal
+    levels, ``|ratio_p - ratio_q| > Z sqrt(v_pp + v_qq - 2 v_pq)`` with ``v
+    = levels.cov``. The difference, a sum of quadratic forms of the noise,
+    is tested on the linear scale: its log has heavy tails at few residual
+    dof (an estimate near zero).
 
     Returns
     -------
@@ -1503,12 +1531,12 @@ def unequal_noise_rows(levels: ExperimentNoiseLevels | None) -> np.ndarray:
     """
     if levels is None:
         return np.zeros(0, dtype=bool)
-    log_ratio = np.log(levels.ratio)
-    with np.errstate(divide="ignore"):
-        spread = 1.0 / levels.dof
-    gap = np.abs(log_ratio[:, None] - log_ratio[None, :])  # (P, P, n_y)
-    scale = np.sqrt(spread[:, None] + spread[None, :])
-    return np.any((gap > np.log(EQUAL_NOISE_RATIO)) & (gap > EQUAL_NOISE_Z * scale),
+    ratio = levels.ratio
+    factor = np.log(ratio)[:, None] - np.log(ratio)[None, :]  # (P, P, n_y)
+    v = np.diagonal(levels.cov).T  # (P, n_y)
+    scale = np.sqrt(np.maximum(v[:, None] + v[None, :] - 2 * levels.cov, 0.0))
+    return np.any((factor > np.log(EQUAL_NOISE_RATIO))
+                  & (ratio[:, None] - ratio[None, :] > EQUAL_NOISE_Z * scale),
                   axis=(0, 1))
 
 

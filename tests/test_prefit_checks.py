@@ -38,7 +38,7 @@ def _levels_direct(spectra, layout, weights=None, max_windows=16):
     ratio, dof = np.ones((P, n_y)), np.zeros((P, n_y))
     _, x = window_offsets(n)
     for o in range(n_y):
-        gains, energies, ws, diags = [], [], [], []
+        gains, energies, covs = [], [], []
         for k in centres:
             U, Y, bins = spectra.window_spectra(k, k + 1, n, o)
             A, b = local_regressor(U, Y, bins, layout)
@@ -59,17 +59,20 @@ def _levels_direct(spectra, layout, weights=None, max_windows=16):
             residual = proj @ b
             gains.append((np.abs(proj) ** 2 * w).reshape(P, L, P, L).sum(axis=(1, 3)))
             energies.append((np.abs(residual) ** 2).reshape(P, L).sum(axis=1))
-            ws.append(w)
-            diags.append(np.real(np.diag(proj)))
+            # cov(r^H D_p r, r^H D_q r) = tr(K_p W K_q W), K_p = R^H D_p R, for
+            # r = R e, e ~ CN(0, W)
+            K = [proj.conj().T @ np.diag(np.repeat(np.eye(P)[p], L)) @ proj
+                 for p in range(P)]
+            W = np.diag(w)
+            covs.append([[np.real(np.trace(K[p] @ W @ K[q] @ W)) for q in range(P)]
+                         for p in range(P)])
         gain, energy = np.array(gains), np.array(energies)
         level = energy.sum(axis=1) / gain.sum(axis=(1, 2))
-        r = np.linalg.lstsq((gain / level[:, None, None]).sum(axis=0),
-                            (energy / level[:, None]).sum(axis=0), rcond=None)[0]
+        G_inv = np.linalg.inv(gain.sum(axis=0))
+        r = G_inv @ (energy / level[:, None]).sum(axis=0)
         r = np.maximum(r, 1e-3 * r.max())
         r /= r.mean()
-        expected = ((np.array(ws) * np.array(diags)).reshape(-1, P, L)
-                    / level[:, None, None])
-        dof[:, o] = expected.sum(axis=(0, 2)) ** 2 / (expected**2).sum(axis=(0, 2))
+        dof[:, o] = 1.0 / np.diag(G_inv @ np.sum(covs, axis=0) @ G_inv.T)
         ratio[:, o] = r
         if weights is not None:
             ratio[:, o] /= weights[:, o] ** 2
