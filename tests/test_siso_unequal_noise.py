@@ -188,16 +188,27 @@ def test_weighted_siso_routes_agree(system):
     np.testing.assert_array_equal(cv.noise_weights_, cv.best_estimator_.noise_weights_)
 
 
-def test_refused_siso_weights_warn_without_output_rows(system):
-    """Unequal levels with fewer residual dof per window than experiments
-    (one): the pooled fit, one UserWarning that speaks of no output row."""
+def test_refused_siso_weights_warn_without_output_rows(system, monkeypatch):
+    """Fewer residual dof per window than experiments (one): the levels carry
+    no information, so nothing is flagged (the pooled fit, no warning); with
+    the row flagged anyway the dof guard refuses it: the pooled fit and one
+    UserWarning that speaks of no output row."""
+    import lrmfrf.uncertainty
+
     u = inputs(2, 11)
     y = noisy(noise_free(system, u), [1.0, 10.0], np.random.default_rng(5))
     kwargs = dict(half_window=6, num_degree=4, transient_degree=3, den_degree=7)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        est = LRMBeyondNyquist(**kwargs).fit(list(u), list(y), F)
-    pooled = [w for w in caught if "noise alone does not explain" in str(w.message)]
-    assert len(pooled) == 1, [str(w.message) for w in caught]
-    assert "output row" not in str(pooled[0].message)
-    np.testing.assert_array_equal(est.noise_weights_, np.ones(2))
+    for flag_all in (False, True):
+        if flag_all:
+            monkeypatch.setattr(
+                lrmfrf.uncertainty, "unequal_noise_rows",
+                lambda levels: np.ones(levels.ratio.shape[1], dtype=bool))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            est = LRMBeyondNyquist(**kwargs).fit(list(u), list(y), F)
+        pooled = [w for w in caught if "noise alone does not explain" in str(w.message)]
+        assert len(pooled) == int(flag_all), [str(w.message) for w in caught]
+        if flag_all:
+            assert "output row" not in str(pooled[0].message)
+            assert "degrees of freedom" in str(pooled[0].message)
+        np.testing.assert_array_equal(est.noise_weights_, np.ones(2))
