@@ -224,13 +224,8 @@ def variance_terms(
 
 
 def _terms_of_chunk(U, Y, layout, theta, slow_bins, with_hc):
-    nb = layout.n_bands
-    A, b = local_regressor(U, Y, slow_bins, layout)
-    good = np.all(np.isfinite(theta), axis=1)
-    theta0 = np.where(good[:, None], theta, 0.0)
-    residual = b - np.einsum("blp,bp->bl", A, theta0)
-    A_eq, norms, gram_inv, AG = _window_solution(A, good)
-    S = np.ascontiguousarray(AG[:, :, :nb] / norms[:, None, :nb])
+    good, theta0, residual, A_eq, norms, gram_inv, AG, S = _window_fit(
+        U, Y, layout, theta, slow_bins)
     leverage = np.sum((AG * A_eq.conj()).real, axis=2)
     e_weight = np.abs(_denominator_on_window(theta0, layout)) ** 2
     P = layout.n_experiments
@@ -387,13 +382,8 @@ def _row_projection(U, Y, layout, theta, slow_bins, method):
     """What :func:`cross_row_covariance` needs of one row's windows: where
     they are finite, ``S = A (A^H A)^-1`` at the band columns, the hat matrix,
     the residual and the equation weights ``e(x_r)`` (ones for Lemma 2)."""
-    nb = layout.n_bands
-    A, b = local_regressor(U, Y, slow_bins, layout)
-    good = np.all(np.isfinite(theta), axis=1)
-    theta0 = np.where(good[:, None], theta, 0.0)
-    residual = b - np.einsum("blp,bp->bl", A, theta0)
-    A_eq, norms, _, AG = _window_solution(A, good)
-    S = np.ascontiguousarray(AG[:, :, :nb] / norms[:, None, :nb])
+    good, theta0, residual, A_eq, _, _, AG, S = _window_fit(
+        U, Y, layout, theta, slow_bins)
     hat = AG @ np.conj(np.swapaxes(A_eq, 1, 2))
     if method == "lemma2":
         e = np.ones(residual.shape, dtype=complex)
@@ -401,6 +391,22 @@ def _row_projection(U, Y, layout, theta, slow_bins, method):
         e = np.tile(_denominator_on_window(theta0, layout),
                     (1, layout.n_experiments))
     return good, S, hat, residual, e
+
+
+def _window_fit(U, Y, layout, theta, slow_bins):
+    """The windows' regressors at the fitted ``theta``: ``good`` (finite
+    parameters), ``theta0`` (zero where not), the residual ``b - A theta0``,
+    :func:`_window_solution`'s ``A_eq, norms, gram_inv, AG`` and ``S = A (A^H
+    A)^-1`` at the band columns (shared by the std terms and the cross-row
+    covariance)."""
+    nb = layout.n_bands
+    A, b = local_regressor(U, Y, slow_bins, layout)
+    good = np.all(np.isfinite(theta), axis=1)
+    theta0 = np.where(good[:, None], theta, 0.0)
+    residual = b - np.einsum("blp,bp->bl", A, theta0)
+    A_eq, norms, gram_inv, AG = _window_solution(A, good)
+    S = np.ascontiguousarray(AG[:, :, :nb] / norms[:, None, :nb])
+    return good, theta0, residual, A_eq, norms, gram_inv, AG, S
 
 
 def _window_solution(A: np.ndarray, good: np.ndarray):
