@@ -37,7 +37,7 @@ import lrmfrf.estimators.local as local  # noqa: E402
 from lrmfrf import LPMBeyondNyquist, LRMBeyondNyquist  # noqa: E402
 from lrmfrf.plants import random_stage  # noqa: E402
 from lrmfrf.signals import multisine  # noqa: E402
-from lrmfrf.simulate import simulate  # noqa: E402
+from lrmfrf.simulate import simulate, true_frf  # noqa: E402
 
 CHANNELS = [("closed", "G_y4"), ("closed", "G_z"), ("open", "G_y4")]
 
@@ -62,7 +62,7 @@ def record(i, base_seed):
     y = clean + sigma * rng.standard_normal(clean.shape)
     info = dict(F=F, P=P, M=M, snr=snr, loop=loop, channel=channel, seed=seed,
                 unequal_inputs=unequal_inputs)
-    return list(u), list(y), F, info
+    return list(u), list(y), F, info, system
 
 
 def fit(est, u, y, F):
@@ -73,6 +73,26 @@ def fit(est, u, y, F):
     return est, bool(pooled)
 
 
+def _without_weights(make, u, y, F):
+    original = local.experiment_noise_weights
+    local.experiment_noise_weights = lambda spectra, layout, **_: None
+    try:
+        return fit(make(), u, y, F)[0]
+    finally:
+        local.experiment_noise_weights = original
+
+
+def weighted_error_ratio(make, est, u, y, F, system):
+    """Median relative error against the truth of the weighted fit ``est``
+    over that of the same fit without the weights (valid bins of both)."""
+    ref = _without_weights(make, u, y, F)
+    truth = true_frf(system, len(u[0]))
+    ok = est.valid_ & ref.valid_ & np.isfinite(truth) & (truth != 0)
+    err = [np.median(np.abs(g.frf_[ok] - truth[ok]) / np.abs(truth[ok]))
+           for g in (est, ref)]
+    return float(err[0] / err[1])
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--records", type=int, default=240)
@@ -81,6 +101,10 @@ def main(argv=None):
     parser.add_argument("--compare-every", type=int, default=4,
                         help="compare every k-th unweighted fit with the pooled "
                              "fit bit for bit")
+    parser.add_argument("--error", action="store_true",
+                        help="for every weighted record, also the median "
+                             "relative error against the truth of the weighted "
+                             "fit over that of the pooled (unweighted) fit")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
     make = LPMBeyondNyquist if args.lpm else LRMBeyondNyquist
@@ -93,11 +117,11 @@ def main(argv=None):
     emit(f"{make.__name__}(), {args.records} equal-noise SISO records, seed "
          f"{args.seed}, F 2-5, P 2-4, M 200/400/1000, 25-70 dB")
     weighted, warned, compared, differ = [], [], 0, 0
-    original = local.experiment_noise_weights
     infos = []
+    error_ratios = []
     start = time.perf_counter()
     for i in range(args.records):
-        u, y, F, info = record(i, args.seed)
+        u, y, F, info, system = record(i, args.seed)
         infos.append(info)
         est, pooled = fit(make(), u, y, F)
         w = est.noise_weights_
@@ -105,16 +129,17 @@ def main(argv=None):
         if np.any(w != 1.0):
             ratio = (w.max() / w.min()) ** 2
             weighted.append((i, info, ratio))
-            emit(f"weighted: record {i} {info} variance ratio {ratio:.2f}")
+            note = ""
+            if args.error:
+                err = weighted_error_ratio(make, est, u, y, F, system)
+                error_ratios.append(err)
+                note = f", error weighted / pooled {err:.3f}"
+            emit(f"weighted: record {i} {info} variance ratio {ratio:.2f}{note}")
         elif pooled:
             warned.append((i, info))
             emit(f"pooled with warning: record {i} {info}")
         elif i % args.compare_every == 0:
-            local.experiment_noise_weights = lambda spectra, layout, **_: None
-            try:
-                ref, _ = fit(make(), u, y, F)
-            finally:
-                local.experiment_noise_weights = original
+            ref = _without_weights(make, u, y, F)
             compared += 1
             same = all(np.array_equal(getattr(est, a), getattr(ref, a),
                                       equal_nan=True)
@@ -126,6 +151,12 @@ def main(argv=None):
          f"the UserWarning: {len(warned)} / {args.records}; unweighted fits "
          f"compared with the pooled fit: {compared}, not bit-identical: {differ} "
          f"({seconds:.0f} s)")
+    if error_ratios:
+        e = np.array(error_ratios)
+        emit(f"median relative error against the truth, weighted fit / pooled "
+             f"fit, over the {e.size} weighted records: median {np.median(e):.3f}, "
+             f"min {e.min():.3f}, max {e.max():.3f}, worse than pooled by > 5 %: "
+             f"{int(np.sum(e > 1.05))}")
     flagged = {i for i, *_ in weighted} | {i for i, _ in warned}
     for name, key in (("closed loop", lambda d: d["loop"] == "closed"),
                       ("open loop", lambda d: d["loop"] == "open"),
