@@ -1328,8 +1328,8 @@ def experiment_noise_levels(spectra, layout: LocalModelLayout, *,
     Gaussian quadratic forms: ``cov(||r_p||^2, ||r_q||^2) = sigma^4 tr(R D_p
     R W R D_q R W)`` (``W = diag(w)``, ``D_p`` experiment ``p``'s rows).
     The columns the output rows share (system and transient) are factored
-    once per weighting, each row adds its denominator columns (about 17 ms for 2 x 2, P = 2, 16 windows, of which
-    the covariance about 7 ms).
+    once per weighting, each row adds its denominator columns (about 17 ms
+    for 2 x 2, P = 2, 16 windows, of which the covariance about 7 ms).
 
     Parameters
     ----------
