@@ -8,7 +8,7 @@ import control
 import numpy as np
 import pytest
 
-from lrmfrf import LPMBeyondNyquist, LRMBeyondNyquist
+from lrmfrf import LPMBeyondNyquist, LRMBeyondNyquist, LRMBeyondNyquistCV
 from lrmfrf.signals import multisine, orthogonal_multisines
 from lrmfrf.simulate import simulate
 
@@ -156,3 +156,20 @@ def test_joint_covariance_does_not_depend_on_the_records_scale(exponent):
         warnings.simplefilter("error")  # no overflow warning either
         joint = est.frf_joint_cov_
     np.testing.assert_array_equal(joint, ref.frf_joint_cov_)
+
+
+def test_cv_classes_pass_on_the_refits_joint_covariance():
+    """``LRMBeyondNyquistCV.frf_joint_cov_`` is its refit's (before, the CV
+    classes had none, and :func:`lrmfrf.plant_from_closed_loop` silently took
+    their rows as independent); None for a per-band blend, whose covariance
+    between rows is not formed."""
+    r, y = _three_by_two(False, [1.0, 1.0], 1)
+    grid = dict(half_windows=[10, 14], num_degrees=[2], transient_degrees=[2],
+                den_degrees=[2])
+    cv = _fit(LRMBeyondNyquistCV(**grid), r, y)
+    joint = cv.frf_joint_cov_
+    assert joint is cv.best_estimator_.frf_joint_cov_
+    assert joint.shape == (3, 2, 3, 2, N // 2 + 1)
+    assert _fit(LRMBeyondNyquistCV(per_band=True, **grid), r, y).frf_joint_cov_ is None
+    with pytest.raises(AttributeError, match="call fit first"):
+        LRMBeyondNyquistCV().frf_joint_cov_  # noqa: B018
