@@ -141,15 +141,22 @@ def test_joint_covariance_of_weighted_rows_is_a_covariance():
     assert np.all(eig[:, 0] > -1e-10 * eig[:, -1])
 
 
+@pytest.fixture(scope="module")
+def ordinary():
+    """Records of the 3x2 plant, equal noise, and their fit (one for the
+    scale tests)."""
+    r, y = _three_by_two(False, [1.0, 1.0], 1)
+    return r, y, _fit(LRMBeyondNyquist(), r, y)
+
+
 @pytest.mark.parametrize("exponent", [600, -600])
-def test_joint_covariance_does_not_depend_on_the_records_scale(exponent):
+def test_joint_covariance_does_not_depend_on_the_records_scale(ordinary, exponent):
     """Inputs and outputs both scaled by 2**+-600: the FRF and frf_cov_ are
     those of the ordinary records bit for bit (the fit normalises them), and
     so is frf_joint_cov_. Before, its cross blocks were computed on the
     records in their own units: NaN at 2**600 (the residuals' products
     overflowed), 0 at 2**-600 (underflowed)."""
-    r, y = _three_by_two(False, [1.0, 1.0], 1)
-    ref = _fit(LRMBeyondNyquist(), r, y)
+    r, y, ref = ordinary
     est = _fit(LRMBeyondNyquist(), np.ldexp(r, exponent), np.ldexp(y, exponent))
     np.testing.assert_array_equal(est.frf_cov_, ref.frf_cov_)
     with warnings.catch_warnings():
@@ -158,12 +165,12 @@ def test_joint_covariance_does_not_depend_on_the_records_scale(exponent):
     np.testing.assert_array_equal(joint, ref.frf_joint_cov_)
 
 
-def test_cv_classes_pass_on_the_refits_joint_covariance():
+def test_cv_classes_pass_on_the_refits_joint_covariance(ordinary):
     """``LRMBeyondNyquistCV.frf_joint_cov_`` is its refit's (before, the CV
     classes had none, and :func:`lrmfrf.plant_from_closed_loop` silently took
     their rows as independent); None for a per-band blend, whose covariance
     between rows is not formed."""
-    r, y = _three_by_two(False, [1.0, 1.0], 1)
+    r, y, _ = ordinary
     grid = dict(half_windows=[10, 14], num_degrees=[2], transient_degrees=[2],
                 den_degrees=[2])
     cv = _fit(LRMBeyondNyquistCV(**grid), r, y)
