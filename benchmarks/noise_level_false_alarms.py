@@ -131,8 +131,8 @@ def main(argv=None):
 
     new = hasattr(unc.ExperimentNoiseLevels, "__dataclass_fields__") and (
         "cov" in unc.ExperimentNoiseLevels.__dataclass_fields__)
-    test = (f"{'quadratic-form covariance, linear' if new else 'Satterthwaite dof, log'}"
-            f" difference > {unc.EQUAL_NOISE_Z:g} sd and ratio > "
+    kind = "quadratic-form covariance, linear" if new else "Satterthwaite dof, log"
+    test = (f"{kind} difference > {unc.EQUAL_NOISE_Z:g} sd and ratio > "
             f"{unc.EQUAL_NOISE_RATIO:g}")
     emit(f"{args.records} records per ratio, seed set {args.set!r}, M = {M}, "
          f"test: {test} ({unc.__file__}), {time.perf_counter() - start:.0f} s")

@@ -258,18 +258,11 @@ def rescale_local_fit(
     """
     if u_exponent == 0 and y_exponent == 0:
         return local_fit
-    layout = local_fit.layout
     system_exponent = y_exponent - u_exponent
-    theta = local_fit.theta.copy()
-    n_sys, n_tr = layout.n_system, layout.n_transient
-    theta[:, :n_sys] = scale_by_power_of_two(theta[:, :n_sys], system_exponent)
-    transient_cols = slice(n_sys, n_sys + n_tr)
-    theta[:, transient_cols] = scale_by_power_of_two(
-        theta[:, transient_cols], y_exponent
-    )
     return replace(
         local_fit,
-        theta=theta,
+        theta=_rescaled_theta(local_fit.theta, local_fit.layout, u_exponent,
+                              y_exponent),
         system=scale_by_power_of_two(local_fit.system, system_exponent),
         system_var=scale_by_power_of_two(local_fit.system_var, 2 * system_exponent),
         transient=scale_by_power_of_two(local_fit.transient, y_exponent),
@@ -277,6 +270,21 @@ def rescale_local_fit(
         rss=scale_by_power_of_two(local_fit.rss, 2 * y_exponent),
         system_cov=scale_by_power_of_two(local_fit.system_cov, 2 * system_exponent),
     )
+
+
+def _rescaled_theta(theta, layout, u_exponent: int, y_exponent: int):
+    """A copy of the parameters ``theta`` (B, n_params) of records normalised
+    by ``2**-u_exponent``, ``2**-y_exponent`` in the records' units (as
+    :func:`rescale_local_fit`; negative exponents the other way)."""
+    theta = theta.copy()
+    n_sys, n_tr = layout.n_system, layout.n_transient
+    theta[:, :n_sys] = scale_by_power_of_two(theta[:, :n_sys],
+                                             y_exponent - u_exponent)
+    transient_cols = slice(n_sys, n_sys + n_tr)
+    theta[:, transient_cols] = scale_by_power_of_two(
+        theta[:, transient_cols], y_exponent
+    )
+    return theta
 
 
 def half_slow_bins(n_slow: int) -> np.ndarray:

@@ -1296,8 +1296,12 @@ class ExperimentNoiseLevels:
         Covariance of the level estimates (``ratio`` before its
         normalisation, about 1 at equal levels, of the fit, weighted or not)
         if the fit's experiments had equal noise levels: exact for Gaussian
-        noise given the fits' residual projectors, the residual rows'
-        correlation included (:func:`_noise_levels_of_row`).
+        noise given the fits' residual projectors and the windows' levels,
+        the residual rows' correlation included (:func:`_noise_levels_of_row`).
+        Each window's energies are divided by its own estimated level, which
+        this leaves out: the level differences spread a little less (0.84-0.92x
+        in std on two SISO records, ``tests/test_noise_weight_guard.py``), so
+        the test of :func:`unequal_noise_rows` is slightly conservative.
     """
 
     ratio: np.ndarray
@@ -1328,8 +1332,8 @@ def experiment_noise_levels(spectra, layout: LocalModelLayout, *,
     Gaussian quadratic forms: ``cov(||r_p||^2, ||r_q||^2) = sigma^4 tr(R D_p
     R W R D_q R W)`` (``W = diag(w)``, ``D_p`` experiment ``p``'s rows).
     The columns the output rows share (system and transient) are factored
-    once per weighting, each row adds its denominator columns (about 17 ms for 2 x 2, P = 2, 16 windows, of which
-    the covariance about 7 ms).
+    once per weighting, each row adds its denominator columns (about 17 ms
+    for 2 x 2, P = 2, 16 windows, of which the covariance about 7 ms).
 
     Parameters
     ----------

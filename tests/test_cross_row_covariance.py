@@ -8,7 +8,7 @@ import control
 import numpy as np
 import pytest
 
-from lrmfrf import LPMBeyondNyquist, LRMBeyondNyquist
+from lrmfrf import LPMBeyondNyquist, LRMBeyondNyquist, LRMBeyondNyquistCV
 from lrmfrf.signals import multisine, orthogonal_multisines
 from lrmfrf.simulate import simulate
 
@@ -96,3 +96,87 @@ def test_joint_covariance_contract():
     assert siso.frf_joint_cov_.shape == (1, 1, 1, 1, K)
     with pytest.raises(AttributeError, match="call fit first"):
         LRMBeyondNyquist().frf_joint_cov_  # noqa: B018
+
+
+def _three_by_two(one_at_a_time, noise_scales, seed):
+    """Records of a 3x2 plant, P = 2, output noise partly common to the rows
+    (1 % of the outputs' std) times ``noise_scales[p]`` in experiment ``p``."""
+    r = orthogonal_multisines(2, N, rng=0)
+    if one_at_a_time:
+        r = r * np.eye(2)[:, :, None]
+    plant = control.ss([[0.5, 0], [0, 0.3]], [[1, 0.5], [0.2, 1]],
+                       [[0.2, 0], [0, 0.1], [0.1, 0.1]], np.zeros((3, 2)), 1.0)
+    rng = np.random.default_rng(seed)
+    y = np.stack([simulate(plant, r[p], F).y_l for p in range(2)])
+    common = rng.standard_normal((2, 1, N // F))
+    noise = 0.8 * common + 0.6 * rng.standard_normal(y.shape)
+    scale = 0.01 * y.std(axis=-1, keepdims=True) * np.array(noise_scales)[:, None, None]
+    return r, y + scale * noise
+
+
+def test_joint_covariance_of_weighted_rows_is_a_covariance():
+    """Experiment 1 five times as noisy (std): every row is fitted on weighted
+    experiments (noise_weights_). The cross blocks come from the rows' local
+    problems as they were solved: the weighted spectra with the weighted
+    fit's transient. Before, the weighted spectra were paired with
+    local_fit_.theta, whose transient is in the records' units: the residuals
+    carried the transient's mismatch, the levels between the rows were far
+    too large and every bin's joint covariance had a negative eigenvalue
+    (|correlation| of the rows' estimates up to 4000 on a 2x2 stage; 0.79
+    predicted against 0.77 by Monte Carlo after the fix, 7.8 before). The
+    correlation of two entries is at most 1 (Cauchy-Schwarz): allow 1e-9 for
+    round-off."""
+    r, y = _three_by_two(True, [1.0, 5.0], 2)
+    est = _fit(LRMBeyondNyquist(), r, y)
+    assert np.all(est.noise_weights_[1] < 1.0)  # every row weighted
+    joint = est.frf_joint_cov_
+    K = N // 2 + 1
+    flat = np.moveaxis(joint, -1, 0).reshape(K, 6, 6)
+    ok = np.isfinite(flat).all(axis=(1, 2))
+    assert ok.mean() > 0.9
+    variance = np.einsum("kii->ki", flat[ok]).real
+    corr = np.abs(flat[ok]) / np.sqrt(variance[:, :, None] * variance[:, None, :])
+    assert np.max(corr) < 1 + 1e-9
+    eig = np.linalg.eigvalsh(flat[ok])
+    assert np.all(eig[:, 0] > -1e-10 * eig[:, -1])
+
+
+@pytest.fixture(scope="module")
+def ordinary():
+    """Records of the 3x2 plant, equal noise, and their fit (one for the
+    scale tests)."""
+    r, y = _three_by_two(False, [1.0, 1.0], 1)
+    return r, y, _fit(LRMBeyondNyquist(), r, y)
+
+
+@pytest.mark.parametrize("exponent", [600, -600])
+def test_joint_covariance_does_not_depend_on_the_records_scale(ordinary, exponent):
+    """Inputs and outputs both scaled by 2**+-600: the FRF and frf_cov_ are
+    those of the ordinary records bit for bit (the fit normalises them), and
+    so is frf_joint_cov_. Before, its cross blocks were computed on the
+    records in their own units: NaN at 2**600 (the residuals' products
+    overflowed), 0 at 2**-600 (underflowed)."""
+    r, y, ref = ordinary
+    est = _fit(LRMBeyondNyquist(), np.ldexp(r, exponent), np.ldexp(y, exponent))
+    np.testing.assert_array_equal(est.frf_cov_, ref.frf_cov_)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no overflow warning either
+        joint = est.frf_joint_cov_
+    np.testing.assert_array_equal(joint, ref.frf_joint_cov_)
+
+
+def test_cv_classes_pass_on_the_refits_joint_covariance(ordinary):
+    """``LRMBeyondNyquistCV.frf_joint_cov_`` is its refit's (before, the CV
+    classes had none, and :func:`lrmfrf.plant_from_closed_loop` silently took
+    their rows as independent); None for a per-band blend, whose covariance
+    between rows is not formed."""
+    r, y, _ = ordinary
+    grid = dict(half_windows=[10, 14], num_degrees=[2], transient_degrees=[2],
+                den_degrees=[2])
+    cv = _fit(LRMBeyondNyquistCV(**grid), r, y)
+    joint = cv.frf_joint_cov_
+    assert joint is cv.best_estimator_.frf_joint_cov_
+    assert joint.shape == (3, 2, 3, 2, N // 2 + 1)
+    assert _fit(LRMBeyondNyquistCV(per_band=True, **grid), r, y).frf_joint_cov_ is None
+    with pytest.raises(AttributeError, match="call fit first"):
+        LRMBeyondNyquistCV().frf_joint_cov_  # noqa: B018

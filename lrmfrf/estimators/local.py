@@ -28,6 +28,7 @@ from ..local_models import (
     OneSidedSpectra,
     _fast_grid_runs,
     _joined_fits,
+    _rescaled_theta,
     experiments_needed,
     fast_grid_targets,
     fit_local_models,
@@ -1026,27 +1027,36 @@ class _LocalFitSource:
 def _joint_covariance(source: _LocalFitSource, fits, cov) -> np.ndarray:
     """``frf_joint_cov_`` of a streamed closed-form fit: the band covariance
     between rows of each window (:func:`lrmfrf.uncertainty.
-    cross_row_covariance` on the records' spectra, each row weighted as it
-    was fitted, with the rows' parameters ``fits``) on the one-sided fast
-    grid, with the estimator's ``frf_cov_`` (``cov``) as the rows' own
-    blocks."""
+    cross_row_covariance`) on the one-sided fast grid, with the estimator's
+    ``frf_cov_`` (``cov``) as the rows' own blocks.
+
+    Each row's local problem is taken as it was solved: on the normalised
+    spectra (records at ``2**+-600`` would overflow the residuals' products),
+    a weighted row on its weighted spectra with its weighted transient
+    (``fits``, ``local_fit_``, hold the parameters in the records' units
+    and the transient unweighted: :func:`_unweighted`); the result is scaled
+    back to the records' units."""
     spectra, layout = source.spectra, source.layout
     N, F = spectra.n_samples, layout.F
     n_y, n_u, K = cov.shape[0], cov.shape[1], cov.shape[-1]
-    # the fits are in the units of the records: so are the spectra
-    U = scale_by_power_of_two(spectra.full_inputs(), source.u_exponent)
-    pairs = []
-    for o in range(n_y):
-        Y = scale_by_power_of_two(spectra.full_outputs(o), source.y_exponent)
+    U = spectra.full_inputs()
+    pairs, thetas = [], []
+    for o, fit in enumerate(fits):
+        theta = _rescaled_theta(fit.theta, layout, -source.u_exponent,
+                                -source.y_exponent)
+        Y = spectra.full_outputs(o)
         if source.weights is not None and np.any(source.weights[:, o] != 1.0):
-            w = source.weights[:, o, None]
-            pairs.append((U * w, Y * w))
+            w = source.weights[:, o]
+            pairs.append((U * w[:, None], Y * w[:, None]))
+            theta = _transient_scaled(theta, layout, w, np.multiply)
         else:
             pairs.append((U, Y))
+        thetas.append(theta)
     method = "lemma2" if source.std_method == "lemma2" else "eiv"
     bins = fits[0].slow_bins
-    windows = cross_row_covariance(None, pairs, layout, [f.theta for f in fits],
-                                   bins, method=method)
+    windows = cross_row_covariance(None, pairs, layout, thetas, bins, method=method)
+    windows = scale_by_power_of_two(
+        windows, 2 * (source.y_exponent - source.u_exponent))
     joint = np.empty((n_y, n_u, n_y, n_u, K), dtype=complex)
     fast, slow, band, mirrored = fast_grid_targets(0, bins.size, N, F)
     for f in range(F):
@@ -1108,9 +1118,17 @@ def _unweighted(fit, weights, o):
     denominator are those of the weighted fit."""
     if weights is None or not np.any(weights[:, o] != 1.0):
         return fit
-    layout = fit.layout
-    theta = fit.theta.copy()
-    for p in range(layout.n_experiments):
-        start = layout.transient_column(p)
-        theta[:, start:start + layout.transient_degree + 1] /= weights[p, o]
+    theta = _transient_scaled(fit.theta, fit.layout, weights[:, o], np.divide)
     return replace(fit, theta=theta, transient=fit.transient / weights[:, o])
+
+
+def _transient_scaled(theta, layout, weights, operation):
+    """A copy of ``theta`` (B, n_params) with experiment ``p``'s transient
+    coefficients ``operation``-ed by ``weights[p]`` (``np.multiply``: the
+    weighted fit's, ``np.divide``: the records')."""
+    theta = theta.copy()
+    for p in range(layout.n_experiments):
+        cols = slice(layout.transient_column(p),
+                     layout.transient_column(p) + layout.transient_degree + 1)
+        theta[:, cols] = operation(theta[:, cols], weights[p])
+    return theta

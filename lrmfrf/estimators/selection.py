@@ -1062,6 +1062,22 @@ class _LocalModelCV(_BaseFRFEstimator):
         results["rank"] = rank
         return results
 
+    @property
+    def frf_joint_cov_(self):
+        """``best_estimator_.frf_joint_cov_``: the covariance of all entries
+        of a bin, between output rows too (computed on first access; None
+        where the refit has none). None with ``per_band=True``: the blend's
+        covariance between rows is not formed (its rows are then taken as
+        independent, e.g. by :func:`lrmfrf.plant_from_closed_loop`)."""
+        if "best_estimator_" not in vars(self):
+            raise AttributeError(
+                f"{type(self).__name__!r} object has no attribute "
+                "'frf_joint_cov_' (call fit first)"
+            )
+        if "band_params_" in vars(self):
+            return None
+        return self.best_estimator_.frf_joint_cov_
+
     def _fast_frf(self, n_samples: int) -> np.ndarray:
         if "band_params_" not in vars(self):
             return self.best_estimator_._fast_frf(n_samples)
