@@ -45,12 +45,16 @@ in the rigid-body region and around the cluster. With ``--mimo`` it runs on
 2x2 cluster stages instead (:func:`cluster_mimo_stage`: the four-corner plate
 with three such modes of random shapes, ``G[0:2, 0:2]``, two orthogonal
 multisine experiments, the relative error of the 2x2 matrix per bin).
+``--std-method eiv_robust`` passes ``std_method`` to the per-band
+``LRMBeyondNyquistCV`` (the candidates' ``frf_std_``, and so the blend
+weights); the single settings compared against are unchanged.
 
 Run:  python benchmarks/generalisation_selection.py --seeds 1000-1019
       python benchmarks/generalisation_selection.py --seeds 2000-2019 --wafer
       python benchmarks/generalisation_selection.py --mimo --seeds 3000-3019 --wafer
       python benchmarks/generalisation_selection.py --per-band --seeds 1-8
       python benchmarks/generalisation_selection.py --per-band --mimo --seeds 1-8
+      python benchmarks/generalisation_selection.py --per-band --mimo --seeds 1-8 --std-method eiv_robust
       [--n-jobs 2] [--criteria gaic aicc aicg_k3 ...] [--csv out.csv]
 (about 5 s of CPU per record; 15-20 min per 20 stages on a loaded 2-core box)
 """
@@ -479,10 +483,19 @@ def main(argv=None) -> int:
     parser.add_argument("--bands", type=int, default=None,
                         help="regions of the per-band study (default: none, the "
                         "per-slow-bin choice by the predicted std)")
+    parser.add_argument("--std-method", default=None,
+                        help="per-band study: LRMBeyondNyquistCV(std_method=...) "
+                        "for the blend's candidates (default: the library's); "
+                        "the single settings compared against are the same")
     args = parser.parse_args(argv)
+    if args.std_method is not None and not args.per_band:
+        parser.error("--std-method is for the per-band study (--per-band)")
     if args.per_band:
         rows = per_band_table(_parse_seeds(args.seeds), bands=args.bands,
-                              n_jobs=args.n_jobs, mimo=args.mimo)
+                              n_jobs=args.n_jobs, mimo=args.mimo,
+                              std_method=args.std_method)
+        if args.std_method is not None:
+            print(f"candidates' std_method: {args.std_method}")
         print_per_band(rows)
         return 0
     seeds = _parse_seeds(args.seeds) + (["wafer"] if args.wafer else [])
@@ -550,12 +563,16 @@ def cluster_stage(seed: int, loop: str = "closed"):
 
 
 def per_band_record(seed: int, loop: str, output: str, bands=None,
-                    snr_db: float = 40.0) -> dict:
+                    snr_db: float = 40.0, std_method: str | None = None) -> dict:
     """Per-band pick vs the best single setting of the grid on one record.
 
     Errors are relative, ``|G_hat - G| / |G|`` over the fast bins valid for
     every estimate; RMS over all of them, medians over the rigid-body region
     (below 100 Hz) and over the cluster (within 15 Hz of its three modes).
+    ``std_method`` (``None``: the library's default) is passed to
+    ``LRMBeyondNyquistCV`` and so to the candidates whose ``frf_std_`` weighs
+    the blend; the single settings compared against are fitted with the
+    default (their FRF does not depend on the std route).
     """
     import warnings
 
@@ -575,7 +592,8 @@ def per_band_record(seed: int, loop: str, output: str, bands=None,
     cluster = np.min(np.abs(f[:, None] - np.asarray(freqs)), axis=1) < 15.0
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        cv = LRMBeyondNyquistCV(per_band=True, bands=bands).fit(u, y, F)
+        cv = LRMBeyondNyquistCV(per_band=True, bands=bands,
+                                **_std_kwargs(std_method)).fit(u, y, F)
         frfs = [LRMBeyondNyquist(**p).fit(u, y, F).frf_
                 for p, ok in zip(cv.cv_results_["params"],
                                  cv.cv_results_["identifiable"], strict=True)
@@ -599,15 +617,23 @@ def per_band_record(seed: int, loop: str, output: str, bands=None,
                  if ok][best - 2]].values())}
 
 
+def _std_kwargs(std_method):
+    """``{"std_method": std_method}``, or nothing for ``None`` (the default)."""
+    return {} if std_method is None else {"std_method": std_method}
+
+
 def per_band_table(seeds, *, loops=("closed",), outputs=("G_y4", "G_z"),
-                   bands=None, n_jobs: int = 1, mimo: bool = False) -> list[dict]:
+                   bands=None, n_jobs: int = 1, mimo: bool = False,
+                   std_method: str | None = None) -> list[dict]:
     """:func:`per_band_record` over seeds, loops and outputs
     (:func:`per_band_mimo_record` per seed with ``mimo``)."""
     if mimo:
         return Parallel(n_jobs=n_jobs)(
-            delayed(per_band_mimo_record)(seed, bands) for seed in seeds)
+            delayed(per_band_mimo_record)(seed, bands, std_method=std_method)
+            for seed in seeds)
     return Parallel(n_jobs=n_jobs)(
-        delayed(per_band_record)(seed, loop, output, bands)
+        delayed(per_band_record)(seed, loop, output, bands,
+                                 std_method=std_method)
         for seed in seeds for loop in loops for output in outputs
     )
 
@@ -666,7 +692,8 @@ def cluster_mimo_record(seed: int, snr_db: float = 40.0):
     return stage, freqs, system, u, y
 
 
-def per_band_mimo_record(seed: int, bands=None, snr_db: float = 40.0) -> dict:
+def per_band_mimo_record(seed: int, bands=None, snr_db: float = 40.0,
+                         std_method: str | None = None) -> dict:
     """:func:`per_band_record` on the 2x2 block ``G[0:2, 0:2]`` of
     :func:`cluster_mimo_stage`: two orthogonal multisine experiments of
     ``N = 1200``, ``snr_db`` on each output. The relative error of a bin is
@@ -688,7 +715,8 @@ def per_band_mimo_record(seed: int, bands=None, snr_db: float = 40.0) -> dict:
     cluster = np.min(np.abs(f[:, None] - np.asarray(freqs)), axis=1) < 15.0
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        cv = LRMBeyondNyquistCV(per_band=True, bands=bands).fit(u, y, F)
+        cv = LRMBeyondNyquistCV(per_band=True, bands=bands,
+                                **_std_kwargs(std_method)).fit(u, y, F)
         ok = [p for p, good in zip(cv.cv_results_["params"],
                                    cv.cv_results_["identifiable"], strict=True)
               if good]

@@ -66,6 +66,16 @@ single setting's RMS error even with the truth (the library's estimated score
 upper bounds for a rule that sees the data only: the truth also tells which
 candidate's noise realisation happened to fall small at a bin.
 
+Candidates' ``eiv_robust`` std (``--variants robust``, its own fits: each
+candidate also refitted with ``std_method="eiv_robust"``, the bias-aware
+route of ``lrmfrf.uncertainty``): the library's score from that std, or from
+the larger of the two stds, at sharpness 10, 30 and 100, with the mean and
+worst of each ratio over the records, and each candidate's median
+``|error| / std`` in the cluster and the rigid-body region under either std
+(``--std-method`` of
+``generalisation_selection.py --per-band`` runs the library's blend itself
+with it).
+
 For each variant: the RMS relative error of the 2x2 matrix over the bins
 against the best single setting (lowest RMS, known from the truth), and the
 median error ratio in the rigid-body region and in the cluster (median over
@@ -76,6 +86,7 @@ Run::
     python benchmarks/per_band_scores.py --seeds 1-8
     python benchmarks/per_band_scores.py --seeds 1-8 --cache s1-8.pkl --variants bias
     python benchmarks/per_band_scores.py --seeds 1-8 --cache s1-8.pkl --variants oracle
+    python benchmarks/per_band_scores.py --seeds 1-8 --variants robust [--siso]
 """
 
 from __future__ import annotations
@@ -97,9 +108,11 @@ from lrmfrf import LRMBeyondNyquist, LRMBeyondNyquistCV  # noqa: E402
 from lrmfrf.estimators import _bands  # noqa: E402
 
 
-def fit_record(seed: int, snr_db: float = 40.0) -> dict:
+def fit_record(seed: int, snr_db: float = 40.0, robust: bool = False) -> dict:
     """Every identifiable candidate of the default grid on the 2x2 record of
-    ``seed`` (as :func:`generalisation_selection.per_band_mimo_record`)."""
+    ``seed`` (as :func:`generalisation_selection.per_band_mimo_record`);
+    ``robust``: also each candidate's ``frf_std_`` under
+    ``std_method="eiv_robust"`` (``std_robust``, :func:`_robust_std`)."""
     stage, freqs, system, u, y = gs.cluster_mimo_record(seed, snr_db)
     F, N = 3, u.shape[-1]
     with warnings.catch_warnings():
@@ -109,7 +122,9 @@ def fit_record(seed: int, snr_db: float = 40.0) -> dict:
                                    cv.cv_results_["identifiable"], strict=True)
               if good]
         fits = [LRMBeyondNyquist(**p).fit(u, y, F) for p in ok]
+    extra = _robust_std(fits, ok, u, y, F) if robust else {}
     return {
+        **extra,
         "seed": seed, "F": F, "N": N, "freqs": freqs,
         "G": gs.true_frf(system, N),
         "f": np.arange(N // 2 + 1) / (N * stage.sample_time),
@@ -121,8 +136,25 @@ def fit_record(seed: int, snr_db: float = 40.0) -> dict:
     }
 
 
+def _robust_std(fits, params, u, y, F) -> dict:
+    """``{"std_robust": ...}``: the ``frf_std_`` of each candidate refitted
+    with ``std_method="eiv_robust"`` (as ``rec["std"]``); its FRF is checked
+    to be that of the default fit (the std route does not change it)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        robust = [LRMBeyondNyquist(**p, std_method="eiv_robust").fit(u, y, F)
+                  for p in params]
+    for a, b in zip(fits, robust, strict=True):
+        same = np.isfinite(a.frf_) & np.isfinite(b.frf_)
+        if not np.array_equal(a.frf_[same], b.frf_[same]):
+            raise RuntimeError("eiv_robust changed a candidate's frf_")
+    std = [np.asarray(e.frf_std_) for e in robust]
+    return {"std_robust": np.array([s.reshape((1, 1) + s.shape) if s.ndim == 1
+                                    else s for s in std])}
+
+
 def fit_record_siso(seed: int, output: str, loop: str = "closed",
-                    snr_db: float = 40.0) -> dict:
+                    snr_db: float = 40.0, robust: bool = False) -> dict:
     """:func:`fit_record` on the SISO record of
     :func:`generalisation_selection.per_band_record` (same stage, input and
     noise draws), the FRFs as ``(1, 1, K)`` matrices."""
@@ -139,12 +171,14 @@ def fit_record_siso(seed: int, output: str, loop: str = "closed",
                                    cv.cv_results_["identifiable"], strict=True)
               if good]
         fits = [LRMBeyondNyquist(**p).fit(u, y, F) for p in ok]
+    extra = _robust_std(fits, ok, u, y, F) if robust else {}
 
     def matrix(a):
         a = np.asarray(a)
         return a.reshape((1, 1) + a.shape[-1:]) if a.ndim == 1 else a
 
     return {
+        **extra,
         "seed": seed, "output": output, "F": F, "N": N, "freqs": freqs,
         "n_u": 1, "P": 1, "G": matrix(gs.true_frf(system, N)),
         "f": np.arange(N // 2 + 1) / (N * stage.sample_time),
@@ -165,8 +199,9 @@ def with_min_dof(rec: dict, min_dof: int) -> dict:
     keep = np.array([P * (2 * p["half_window"] + 1) - _n_params(rec, p)
                      >= min_dof for p in rec["params"]])
     out = dict(rec)
-    for name in ("frf", "std", "valid", "noise"):
-        out[name] = rec[name][keep]
+    for name in ("frf", "std", "valid", "noise", "std_robust"):
+        if name in rec:
+            out[name] = rec[name][keep]
     out["params"] = [p for p, k in zip(rec["params"], keep, strict=True) if k]
     return out
 
@@ -643,6 +678,62 @@ def oracle_scores(rec: dict, mean: str = "log") -> np.ndarray:
                                                   np.inf)))[:, None, :]
 
 
+def robust_variants():
+    """``(name, std of the score, sharpness)``: the library's score (mean
+    log std per slow bin over the matrix, smoothed) from the candidates'
+    default ``frf_std_`` (``eiv``), from their ``std_method="eiv_robust"``
+    std, or from the larger of the two per bin and entry (the robust route's
+    inflation where a window misfits, without its neighbours' median noise
+    level)."""
+    for key in ("std", "std_robust", "max"):
+        label = {"std": "eiv (default)", "std_robust": "eiv_robust",
+                 "max": "max(eiv, eiv_robust)"}[key]
+        for sharpness in (10.0, 30.0, 100.0):
+            yield f"std {label}, sharpness {sharpness:g}", key, sharpness
+
+
+def robust_scores(rec: dict, key: str) -> np.ndarray:
+    """:func:`log_std_scores` (``matrix``) with the std of :func:`robust_variants`."""
+    std = {"std": rec["std"], "std_robust": rec["std_robust"],
+           "max": np.fmax(rec["std"], rec["std_robust"])}[key]
+    return log_std_scores({**rec, "std": std}, "matrix")
+
+
+def robust_error_over_std(records) -> None:
+    """Print, per candidate, the median over the records of the median
+    ``|G_hat - G| / std`` per entry and fast bin in the cluster and in the
+    rigid-body region, ``std`` the ``eiv`` and the ``eiv_robust`` std, and the
+    median ratio of the two stds (an unbiased estimate with a right std has a
+    median ``|error| / std`` of ``sqrt(ln 2) = 0.83``)."""
+    table = {}
+    for r in records:
+        f = r["f"]
+        regions = {
+            "cluster": np.min(np.abs(f[:, None] - np.asarray(r["freqs"])),
+                              axis=1) < 15.0,
+            "rigid": (f > 0) & (f < 100.0)}
+        for c, p in enumerate(r["params"]):
+            err = np.abs(r["frf"][c] - r["G"])
+            s0, s1 = r["std"][c], r["std_robust"][c]
+            for name, region in regions.items():
+                m = (np.broadcast_to(region, err.shape) & np.isfinite(err)
+                     & np.isfinite(s0) & np.isfinite(s1) & (s0 > 0) & (s1 > 0))
+                if m.any():
+                    table.setdefault((tuple(p.values()), name), []).append(
+                        (np.median(err[m] / s0[m]), np.median(err[m] / s1[m]),
+                         np.median(s1[m] / s0[m])))
+    print("\nmedian |error| / std per candidate (median over the records): "
+          "eiv, eiv_robust, and eiv_robust std / eiv std")
+    print(f"{'candidate':18s}{'cluster':>24s}{'rigid body':>24s}")
+    for params in sorted({k[0] for k in table}):
+        cells = []
+        for name in ("cluster", "rigid"):
+            values = table.get((params, name))
+            cells.append("".join(f"{v:8.2f}" for v in np.median(values, axis=0))
+                         if values else f"{'-':>24s}")
+        print(f"{str(params):18s}" + "".join(cells))
+
+
 def oracle_variants():
     """``(name, score function, sharpness, smoothing half width)``."""
     for mean in ("log", "square"):
@@ -659,10 +750,14 @@ def main(argv=None) -> None:
     parser.add_argument("--cache", default=None,
                         help="pickle of the fitted records: read if it exists "
                              "(and holds these seeds), else written")
-    parser.add_argument("--variants", choices=("all", "std", "bias", "oracle"),
+    parser.add_argument("--variants", choices=("all", "std", "bias", "oracle",
+                                               "robust"),
                         default="all", help="the std-based scores of the first "
                         "round, the bias-aware ones, or both; 'oracle': the "
-                        "truth's per-bin error as the score (a ceiling)")
+                        "truth's per-bin error as the score (a ceiling); "
+                        "'robust': the std score from the candidates' "
+                        "std_method='eiv_robust' std (fits it too; a cache "
+                        "without it is refitted)")
     parser.add_argument("--min-dof", type=int, default=2,
                         help="leave out candidates with fewer residual dof, as "
                         "the library's blend does (_bands.SCORE_MIN_DOF)")
@@ -676,12 +771,14 @@ def main(argv=None) -> None:
         with open(args.cache, "rb") as fh:
             cached = pickle.load(fh)
         if sorted({r["seed"] for r in cached}) == sorted(seeds) and (
-                ("output" in cached[0]) == args.siso):
+                ("output" in cached[0]) == args.siso) and (
+                args.variants != "robust" or "std_robust" in cached[0]):
             records = cached
     if records is None:
-        records = ([fit_record_siso(s, o) for s in seeds
+        robust = args.variants == "robust"
+        records = ([fit_record_siso(s, o, robust=robust) for s in seeds
                     for o in ("G_y4", "G_z")] if args.siso
-                   else [fit_record(s) for s in seeds])
+                   else [fit_record(s, robust=robust) for s in seeds])
         if args.cache is not None:
             with open(args.cache, "wb") as fh:
                 pickle.dump(records, fh)
@@ -694,8 +791,9 @@ def main(argv=None) -> None:
           f"seeds {args.seeds} ({len(records)}); the "
           f"'matrix, sharpness 30' blend reproduces the CV's frf_ to "
           f"{reproduced:.1e}")
-    print(f"{'score':52s}{'RMS mean':>9s}{'worst':>7s}{'rigid':>7s}"
-          f"{'cluster':>8s}{'[min, max]':>16s}  (* all three targets met)")
+    if args.variants != "robust":
+        print(f"{'score':52s}{'RMS mean':>9s}{'worst':>7s}{'rigid':>7s}"
+              f"{'cluster':>8s}{'[min, max]':>16s}  (* all three targets met)")
     if args.variants in ("all", "std"):
         for name, mode, ref, alpha, sharpness in variants():
             rows = []
@@ -711,6 +809,24 @@ def main(argv=None) -> None:
                     for r in records]
             print_row(name, np.array(rows))
 
+
+    if args.variants == "robust":
+        print("ratios to the best single setting's (per record); * all three "
+              "targets met on the means (RMS <= 0.9, both medians <= 1)")
+        print(f"{'score':52s}{'RMS':>14s}{'rigid-body median':>24s}"
+              f"{'cluster median':>24s}")
+        print(f"{'':52s}" + f"{'mean':>7s}{'worst':>7s}" + 2 * (
+            f"{'mean':>8s}{'worst':>8s}{'median':>8s}"))
+        for name, key, sharpness in robust_variants():
+            rows = np.array([ratios(r, blend(r, robust_scores(r, key), sharpness))
+                            for r in records])
+            met = ("*" if rows[:, 0].mean() <= 0.9 and rows[:, 1].mean() <= 1.0
+                   and rows[:, 2].mean() <= 1.0 else "")
+            print(f"{name:52s}{rows[:, 0].mean():7.3f}{rows[:, 0].max():7.3f}"
+                  + "".join(f"{rows[:, j].mean():8.3f}{rows[:, j].max():8.3f}"
+                            f"{np.median(rows[:, j]):8.3f}" for j in (1, 2))
+                  + f" {met}", flush=True)
+        robust_error_over_std(records)
 
     if args.variants == "oracle":
         for name, score, sharpness, h in oracle_variants():
