@@ -315,6 +315,14 @@ def cross_row_covariance(
     """
     if method not in ("eiv", "lemma2"):
         raise ValueError(f"`method` must be 'eiv' or 'lemma2'; got {method!r}.")
+    if U is None and not all(isinstance(Y, (tuple, list)) and len(Y) == 2
+                             for Y in Ys):
+        raise ValueError(
+            "With `U` None every entry of `Ys` must be a (U_o, Y_o) pair, the "
+            "row's own input and output spectra; got "
+            f"{[np.shape(Y) for Y in Ys]}. Pass the input spectra as `U` with "
+            "plain output spectra, or pairs."
+        )
     pairs = [(U, Y) if U is not None else tuple(Y) for Y in Ys]
     n_y, nb = len(pairs), layout.n_bands
     slow_bins = np.asarray(slow_bins, dtype=int)

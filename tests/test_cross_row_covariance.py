@@ -180,3 +180,18 @@ def test_cv_classes_pass_on_the_refits_joint_covariance(ordinary):
     assert _fit(LRMBeyondNyquistCV(per_band=True, **grid), r, y).frf_joint_cov_ is None
     with pytest.raises(AttributeError, match="call fit first"):
         LRMBeyondNyquistCV().frf_joint_cov_  # noqa: B018
+
+
+def test_rows_without_input_spectra_must_be_pairs():
+    """With U None each row gives its own (U_o, Y_o); a plain (P, M) output
+    array (here P = 2, which tuple() would have split into a wrong 'pair')
+    is an error that says what to pass, before any work."""
+    from lrmfrf.local_models import LocalModelLayout
+    from lrmfrf.uncertainty import cross_row_covariance
+
+    layout = LocalModelLayout(F=F, half_window=6, num_degree=1,
+                              transient_degree=1, den_degree=1)
+    Y = np.ones((2, 40), dtype=complex)
+    thetas = [np.zeros((1, layout.n_params), dtype=complex)] * 2
+    with pytest.raises(ValueError, match=r"\(U_o, Y_o\) pair"):
+        cross_row_covariance(None, [Y, Y], layout, thetas, np.array([3]))
