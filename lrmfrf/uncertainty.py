@@ -1587,12 +1587,15 @@ def experiment_noise_weights(spectra, layout: LocalModelLayout, *,
         ``1 / sqrt(ratio)`` (``ratio`` of mean 1 over the experiments) in
         the rows :func:`unequal_noise_rows` flags on the unweighted fit,
         exactly 1 in the others; None when no row is flagged (then the
-        unweighted fit is unchanged), and None with a ``UserWarning`` when
-        the flagged levels are not a noise estimate: fewer than
-        :data:`MIN_NOISE_LEVEL_DOF` residual dof per window and experiment,
-        a level at its lower bound (1e-3 of the largest), or no convergence
-        in ``iterations`` (e.g. model misfit that differs between the
-        experiments, or experiments that nearly repeat each other).
+        unweighted fit is unchanged). A flagged row whose levels are not a
+        noise estimate keeps weights of 1 (it is fitted pooled) and a
+        ``UserWarning`` names it: a level at its lower bound (1e-3 of the
+        largest) or no convergence in ``iterations`` (e.g. model misfit
+        that differs between the experiments, or experiments that nearly
+        repeat each other); the other flagged rows keep their weights (each
+        row is its own fit), and None when no row is left weighted. With
+        fewer than :data:`MIN_NOISE_LEVEL_DOF` residual dof per window and
+        experiment no row is weighted.
     stacklevel : int, default 2
         Of that warning (:meth:`LRMBeyondNyquist.fit` passes its caller's).
     """
@@ -1631,22 +1634,39 @@ def _noise_weights(spectra, layout, iterations, diagnostics=None):
                             f"window, fewer than {MIN_NOISE_LEVEL_DOF} per "
                             "experiment")
     weights = np.where(unequal[None, :], 1.0 / np.sqrt(levels.ratio), 1.0)
-    converged = False
+    settled = np.zeros(unequal.shape, dtype=bool)
     for _ in range(iterations):
         levels = experiment_noise_levels(spectra, layout, weights=weights)
         if diagnostics is not None:
             diagnostics["levels"].append(levels)
         new = np.where(unequal[None, :], 1.0 / np.sqrt(levels.ratio), 1.0)
-        change = np.max(np.abs(new / weights - 1.0))
+        settled = np.max(np.abs(new / weights - 1.0), axis=0) < WEIGHT_TOL
         weights = new
-        if change < WEIGHT_TOL:
-            converged = True
+        if settled.all():
             break
     if diagnostics is not None:
-        diagnostics["converged"] = converged
-    if np.any(levels.clamped[unequal]):
-        return None, (rows, "an experiment's level estimate at its lower bound")
-    if not converged:
-        return None, (rows, f"the level estimate did not settle in {iterations} "
-                            "re-estimations")
-    return weights, None
+        diagnostics["converged"] = bool(settled.all())
+    # each output row is its own fit: a row whose levels are not a noise
+    # estimate is fitted pooled, the other flagged rows keep their weights
+    clamped = unequal & levels.clamped
+    unsettled = unequal & ~settled & ~clamped
+    if not (clamped.any() or unsettled.any()):
+        return weights, None
+    reasons = []
+    if clamped.any():
+        reasons.append("an experiment's level estimate at its lower bound"
+                       + _in_rows(clamped, unequal))
+    if unsettled.any():
+        reasons.append(f"the level estimate did not settle in {iterations} "
+                       "re-estimations" + _in_rows(unsettled, unequal))
+    refused = clamped | unsettled
+    weights[:, refused] = 1.0
+    problem = (np.flatnonzero(refused).tolist(), "; ".join(reasons))
+    return (None if refused.sum() == unequal.sum() else weights), problem
+
+
+def _in_rows(rows: np.ndarray, flagged: np.ndarray) -> str:
+    """" in row(s) [...]" where only some of the flagged rows are meant."""
+    if rows.sum() == flagged.sum():
+        return ""
+    return f" in row(s) {np.flatnonzero(rows).tolist()}"

@@ -87,11 +87,34 @@ def test_equal_noise_weights_stay_bounded(seed):
 
 @pytest.mark.parametrize("seed", [3, 6])
 def test_level_at_its_bound_is_not_weighted(seed, flag_all):
+    """Every row flagged; the rows with a level at its bound (row 1 on seed
+    3, rows 1 and 2 on seed 6) are fitted pooled (weights 1) and named in
+    the one warning, the other flagged row keeps its weights (each row is
+    its own fit). Before, every row was left unweighted and the warning
+    named them all."""
+    import lrmfrf.uncertainty as unc
+
+    cfg, degrees = THREE
+    layout = LocalModelLayout(F=cfg["F"], n_experiments=cfg["P"],
+                              n_inputs=cfg["n_u"], **degrees)
+    u, y = records(seed, **cfg)
+    diagnostics = {}
+    unc._noise_weights(OneSidedSpectra.from_records(u, y, cfg["F"]), layout,
+                       unc.NOISE_WEIGHT_ITERATIONS, diagnostics)
+    at_bound = np.flatnonzero(diagnostics["levels"][-1].clamped).tolist()
+    assert at_bound == {3: [1], 6: [1, 2]}[seed]
+    flagged = unc.unequal_noise_rows(diagnostics["levels"][0])
     weights, caught = weights_of(seed, THREE)
-    assert weights is None
     messages = [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
     assert len(messages) == 1
     assert "lower bound" in messages[0] and "pooled" in messages[0]
+    assert f"output row(s) {at_bound}" in messages[0]
+    assert weights is not None
+    assert np.all(weights[:, at_bound] == 1.0)
+    others = [o for o in np.flatnonzero(flagged) if o not in at_bound]
+    assert others == {3: [2], 6: [0]}[seed]
+    assert np.all(np.ptp(weights[:, others], axis=0) > 0.05)
+    assert np.all(weights[:, ~flagged] == 1.0)
 
 
 @pytest.mark.parametrize("seed", [1, 2])
@@ -111,7 +134,10 @@ def test_one_residual_dof_is_not_weighted(seed, monkeypatch):
     assert "degrees of freedom" in messages[0]
 
 
-def test_fit_warns_once_at_its_caller_and_is_unweighted(flag_all):
+def test_fit_warns_once_at_its_caller_and_the_row_at_the_bound_is_unweighted(
+        flag_all):
+    """Seed 3: row 1 at the bound (pooled, named), row 2 weighted, row 0 not
+    flagged; the fit's noise_weights_ are the function's."""
     cfg, degrees = THREE
     u, y = records(3, **cfg)
     est = LRMBeyondNyquist(**degrees)
@@ -121,7 +147,11 @@ def test_fit_warns_once_at_its_caller_and_is_unweighted(flag_all):
     ours = [w for w in caught if "pooled noise level" in str(w.message)]
     assert len(ours) == 1
     assert ours[0].filename == __file__
-    assert np.all(est.noise_weights_ == 1.0)
+    assert "output row(s) [1]" in str(ours[0].message)
+    assert np.all(est.noise_weights_[:, :2] == 1.0)
+    assert np.ptp(est.noise_weights_[:, 2]) > 0.05
+    weights, _ = weights_of(3, THREE)
+    np.testing.assert_array_equal(est.noise_weights_, weights)
 
 
 # half windows of THREE and their residual dof per window: 10 -> 5, 12 -> 17
@@ -212,3 +242,37 @@ def test_level_difference_spread_matches_monte_carlo(amplitudes):
         z.append((levels.ratio[0, 0] - levels.ratio[1, 0])
                  / np.sqrt(v[0, 0] + v[1, 1] - 2 * v[0, 1]))
     assert 0.7 < np.std(z) < 1.15, np.std(z)
+
+
+def test_a_row_whose_level_does_not_settle_is_fitted_pooled_alone(monkeypatch):
+    """Experiment 1 five times noisier on every row (all rows flagged, 17
+    dof per window); the re-estimated level ratio of row 0 is made to swing
+    by 20 % on every call, so row 0 never settles: it alone is fitted
+    pooled and named, rows 1 and 2 keep the weights they have without the
+    swing (to the tolerance of the iteration)."""
+    import lrmfrf.uncertainty as unc
+
+    cfg, degrees = THREE
+    case = (cfg, dict(degrees, half_window=12))
+    plain, caught = weights_of(0, case, scales=[1.0, 5.0, 1.0])
+    assert plain is not None and not caught
+    assert np.all(plain[1] < 0.6 * plain[0])  # experiment 1 weighted down
+    original = unc.experiment_noise_levels
+    calls = []
+
+    def swinging(spectra, layout, weights=None):
+        levels = original(spectra, layout, weights=weights)
+        if weights is not None:
+            calls.append(None)
+            levels.ratio[:, 0] *= (1.2, 0.8)[len(calls) % 2]
+        return levels
+
+    monkeypatch.setattr(unc, "experiment_noise_levels", swinging)
+    weights, caught = weights_of(0, case, scales=[1.0, 5.0, 1.0])
+    messages = [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
+    assert len(messages) == 1
+    assert "did not settle" in messages[0] and "output row(s) [0]" in messages[0]
+    assert np.all(weights[:, 0] == 1.0)
+    # the same fixed point; re-estimated until the iterations run out
+    # instead of stopping once every row settled (each step < WEIGHT_TOL)
+    np.testing.assert_allclose(weights[:, 1:], plain[:, 1:], rtol=unc.WEIGHT_TOL)

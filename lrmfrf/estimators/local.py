@@ -562,11 +562,12 @@ default="eiv"
         and up to 5.9x on others when one input was excited at a time, and
         0.55-0.75x on SISO records whose experiments had inputs 4-10x apart
         in RMS, each at its own SNR (``benchmarks/unequal_noise.py``,
-        ``--siso``). ``P = 1``: all ones. All ones too, with a
-        ``UserWarning``, when the levels differ in a way noise does not
-        explain (the estimate at its bound, not settling, or too few residual
-        dof; e.g. model misfit that differs between the experiments): the
-        pooled fit.
+        ``--siso``). ``P = 1``: all ones. All ones too in a row whose levels
+        differ in a way noise does not explain (the estimate at its bound or
+        not settling; e.g. model misfit that differs between the
+        experiments), with a ``UserWarning`` naming the row: that row is the
+        pooled fit, the other rows keep their weights; in every row when
+        there are too few residual dof.
     transient_ : ndarray of shape (M//2+1,) or (P, M//2+1), complex
         Transient term in the slow output DFT at each window centre; (P, n_y,
         M//2+1) when not SISO.
