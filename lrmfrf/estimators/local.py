@@ -132,8 +132,10 @@ class _LocalModelEstimator(_BaseFRFEstimator):
 
         Computed on first access, then kept: the closed form is solved again
         from the stored spectra (``local_fit_``) and the rows' projections
-        formed in numpy, about twice the fit's time (3x2, N = 1200, F = 3:
-        1.4-1.6 s against 0.74-0.83 s for the fit); the spectra, about the
+        formed in numpy: about twice the fit's time on short records (3x2,
+        P = 2, F = 3, M = 400: 0.74 s against 0.34 s), but about 20x on long
+        ones, whose fit is compiled (M = 40000: 33 s against 1.6 s); the
+        spectra, about the
         size of the records, are kept until then, also after ``local_fit_``.
         ``None`` for fits whose ``frf_cov_`` is not of the
         closed form's ``"eiv"`` or ``"lemma2"`` route (refined fits, other
@@ -527,7 +529,8 @@ default="eiv"
         ``E[dG_oi conj(dG_pj)]`` between all entries of a fast bin, output
         rows too (noise correlated between the outputs, e.g. fed back in a
         loop, correlates the rows' estimates); the blocks ``o == p`` are
-        ``frf_cov_``. Computed on first access (about twice the fit's time;
+        ``frf_cov_``. Computed on first access (2x the fit's time at M = 400,
+        20x at M = 40000;
         :func:`lrmfrf.plant_from_closed_loop` reads it); None for
         refined fits and ``std_method`` other than ``"eiv"`` and
         ``"lemma2"``.
@@ -1033,29 +1036,25 @@ def _joint_covariance(source: _LocalFitSource, fits, cov) -> np.ndarray:
 
     Each row's local problem is taken as it was solved: on the normalised
     spectra (records at ``2**+-600`` would overflow the residuals' products),
-    a weighted row on its weighted spectra with its weighted transient
-    (``fits``, ``local_fit_``, hold the parameters in the records' units
-    and the transient unweighted: :func:`_unweighted`); the result is scaled
-    back to the records' units."""
+    a weighted row with its experiments' equations weighted window by window
+    (``cross_row_covariance(weights=...)``: no weighted copy of the spectra;
+    ``fits``, ``local_fit_``, hold the transient unweighted, as that form
+    wants); the result is scaled back to the records' units."""
     spectra, layout = source.spectra, source.layout
     N, F = spectra.n_samples, layout.F
     n_y, n_u, K = cov.shape[0], cov.shape[1], cov.shape[-1]
     U = spectra.full_inputs()
-    pairs, thetas = [], []
+    Ys, thetas, weights = [], [], []
     for o, fit in enumerate(fits):
-        theta = _rescaled_theta(fit.theta, layout, -source.u_exponent,
-                                -source.y_exponent)
-        Y = spectra.full_outputs(o)
-        if source.weights is not None and np.any(source.weights[:, o] != 1.0):
-            w = source.weights[:, o]
-            pairs.append((U * w[:, None], Y * w[:, None]))
-            theta = _transient_scaled(theta, layout, w, np.multiply)
-        else:
-            pairs.append((U, Y))
-        thetas.append(theta)
+        thetas.append(_rescaled_theta(fit.theta, layout, -source.u_exponent,
+                                      -source.y_exponent))
+        Ys.append(spectra.full_outputs(o))
+        weighted = source.weights is not None and np.any(source.weights[:, o] != 1.0)
+        weights.append(source.weights[:, o] if weighted else None)
     method = "lemma2" if source.std_method == "lemma2" else "eiv"
     bins = fits[0].slow_bins
-    windows = cross_row_covariance(None, pairs, layout, thetas, bins, method=method)
+    windows = cross_row_covariance(U, Ys, layout, thetas, bins, method=method,
+                                   weights=weights)
     windows = scale_by_power_of_two(
         windows, 2 * (source.y_exponent - source.u_exponent))
     joint = np.empty((n_y, n_u, n_y, n_u, K), dtype=complex)
