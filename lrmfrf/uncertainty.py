@@ -1525,10 +1525,28 @@ def _noise_levels_of_row(shared, A, b, layout):
     # spread of the levels 1.5-11x too low (review30).
     T = np.matmul(projector[keep] * w[keep][:, None, :], projector[keep])
     parts = T.view(np.float64).reshape(-1, P, L, P, L, 2)
-    energy_cov = np.einsum("bpljsc,bpljsc->pj", parts, parts)
-    # at equal levels c = 1 and cov(c) = G^-1 C G^-T (the windows
-    # independent)
-    return ratio, clamped, G_inv @ energy_cov @ G_inv.T
+    energy_cov = np.einsum("bpljsc,bpljsc->bpj", parts, parts)
+    # Each window's energies are divided by its estimated level l = S / g
+    # (S = 1^T E, g = 1^T M 1 its pooled gain): n = g E / S. At equal levels
+    # E[E] = m = M 1 and E[S] = g; to first order dn = J dE with J = I - m
+    # 1^T / g (1^T J = 0: the n sum to g exactly), cov(n) = J C J^T. That
+    # term alone is ~0 when m is even across the experiments; the gap is of
+    # finite dof: where the residual's direction is independent of its norm
+    # (W = I: r = R e isotropic in the range of R), E = S (E / S) gives
+    # exactly cov(n) = g^2 cov(E / S) = J C J^T / (1 + v), v = 1^T C 1 / g^2
+    # the relative variance of S (the Beta(k, k) variance 1 / (2k + 1) in
+    # place of 1 / 2k for two equal experiments). Used for any W; on
+    # synthetic windows (benchmarks/noise_level_spread.py) the simulated
+    # variance of c_0 - c_1 is 0.99-1.03x of it, 0.78-0.94x of G^-1 C G^-T
+    # (the plain quadratic forms, review31) and 0.81-0.95x of J C J^T alone.
+    m = gain.sum(axis=2)  # (B, P)
+    g = gain.sum(axis=(1, 2))
+    J = np.eye(P) - m[:, :, None] / g[:, None, None]
+    shrink = 1.0 / (1.0 + energy_cov.sum(axis=(1, 2)) / g**2)
+    normalised_cov = np.einsum("bpi,bij,bqj,b->pq", J, energy_cov, J, shrink)
+    # at equal levels c = 1 and cov(c) = G^-1 (sum_b J_b C_b J_b^T) G^-T (the
+    # windows independent)
+    return ratio, clamped, G_inv @ normalised_cov @ G_inv.T
 
 
 def unequal_noise_rows(levels: ExperimentNoiseLevels | None) -> np.ndarray:
