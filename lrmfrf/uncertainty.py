@@ -1305,11 +1305,11 @@ class ExperimentNoiseLevels:
         normalisation, about 1 at equal levels, of the fit, weighted or not)
         if the fit's experiments had equal noise levels: exact for Gaussian
         noise given the fits' residual projectors and the windows' levels,
-        the residual rows' correlation included (:func:`_noise_levels_of_row`).
-        Each window's energies are divided by its own estimated level, which
-        this leaves out: the level differences spread a little less (0.84-0.92x
-        in std on two SISO records, ``tests/test_noise_weight_guard.py``), so
-        the test of :func:`unequal_noise_rows` is slightly conservative.
+        the residual rows' correlation included, and the division of each
+        window's energies by its own estimated level (:func:`_noise_levels_of_row`;
+        exact for white equation noise, 0.99-1.03x in variance on synthetic
+        windows; on two SISO library fits the level differences spread
+        0.96x and 0.87x of it in std, ``tests/test_noise_weight_guard.py``).
     """
 
     ratio: np.ndarray
@@ -1336,9 +1336,12 @@ def experiment_noise_levels(spectra, layout: LocalModelLayout, *,
     level (the noise spectrum may be coloured; a frequency-independent
     ratio between the experiments is assumed) and the linear equations for
     ``c``, summed over the windows, are solved. The covariance of ``c`` at
-    equal levels (the test of :func:`unequal_noise_rows`) is that of
-    Gaussian quadratic forms: ``cov(||r_p||^2, ||r_q||^2) = sigma^4 tr(R D_p
-    R W R D_q R W)`` (``W = diag(w)``, ``D_p`` experiment ``p``'s rows).
+    equal levels (the test of :func:`unequal_noise_rows`) is built from
+    that of Gaussian quadratic forms: ``C_pq = cov(||r_p||^2, ||r_q||^2) =
+    sigma^4 tr(R D_p R W R D_q R W)`` (``W = diag(w)``, ``D_p`` experiment
+    ``p``'s rows), per window ``J C J^T / (1 + v)`` for the division by the
+    window's level (``J = I - m 1^T / g``, ``m = M 1``, ``g = 1^T M 1``, ``v
+    = 1^T C 1 / g^2``).
     The columns the output rows share (system and transient) are factored
     once per weighting, each row adds its denominator columns (about 17 ms
     for 2 x 2, P = 2, 16 windows, of which the covariance about 7 ms).
