@@ -24,6 +24,10 @@ Run (about 4 minutes for 300 records)::
 
     python benchmarks/noise_level_false_alarms.py --records 300 --set check
 
+``--z Z`` runs the test at ``EQUAL_NOISE_Z = Z``; the last table gives the
+share of records whose unweighted levels' statistic exceeds a grid of Z
+(what ``--set tune`` chooses the threshold from).
+
 To compare with an older version put its tree first on ``PYTHONPATH``.
 """
 
@@ -43,7 +47,7 @@ from lrmfrf.local_models import OneSidedSpectra  # noqa: E402
 from lrmfrf.plants import random_stage  # noqa: E402
 from lrmfrf.signals import multisine  # noqa: E402
 from lrmfrf.simulate import simulate  # noqa: E402
-from lrmfrf.uncertainty import _noise_weights  # noqa: E402
+from lrmfrf.uncertainty import _noise_weights, experiment_noise_levels  # noqa: E402
 from lrmfrf.windows import LocalModelLayout  # noqa: E402
 
 M = 400
@@ -88,6 +92,25 @@ def record(system, F, P, n_u, snr_db, ratio, rng):
     return u, clean + noise * scale[:, None, None]
 
 
+def test_statistic(spectra, layout):
+    """The largest ``(ratio_p - ratio_q) / sd`` of
+    :func:`lrmfrf.uncertainty.unequal_noise_rows` over the rows and the pairs
+    whose ratio exceeds ``EQUAL_NOISE_RATIO`` (-inf if none)."""
+    import lrmfrf.uncertainty as unc
+
+    levels = experiment_noise_levels(spectra, layout)
+    if levels is None:
+        return -np.inf
+    ratio = levels.ratio
+    factor = np.log(ratio)[:, None] - np.log(ratio)[None, :]
+    v = np.diagonal(levels.cov).T
+    scale = np.sqrt(np.maximum(v[:, None] + v[None, :] - 2 * levels.cov, 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = (ratio[:, None] - ratio[None, :]) / scale
+    z = np.where((factor > np.log(unc.EQUAL_NOISE_RATIO)) & np.isfinite(z), z, -np.inf)
+    return float(z.max())
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--records", type=int, default=300)
@@ -96,7 +119,13 @@ def main(argv=None):
     parser.add_argument("--old", action="store_true",
                         help="import lrmfrf from PYTHONPATH, not this tree")
     parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--z", type=float, default=None,
+                        help="set lrmfrf.uncertainty.EQUAL_NOISE_Z to this")
     args = parser.parse_args(argv)
+    import lrmfrf.uncertainty as unc
+
+    if args.z is not None:
+        unc.EQUAL_NOISE_Z = args.z
     stage0, record0 = SEEDS[args.set]
     systems = {}
     rows = []  # (ratio, kind, P, dof, outcome)
@@ -120,14 +149,13 @@ def main(argv=None):
             spectra = OneSidedSpectra.from_records(u, y, F)
             weights, problem = _noise_weights(spectra, layout, 16)
             outcome = "W" if weights is not None else ("!" if problem else ".")
-            rows.append((ratio, kind, P, layout.dof, outcome))
+            rows.append((ratio, kind, P, layout.dof, outcome,
+                         test_statistic(spectra, layout)))
     lines = []
 
     def emit(text):
         print(text, flush=True)
         lines.append(text)
-
-    import lrmfrf.uncertainty as unc
 
     new = hasattr(unc.ExperimentNoiseLevels, "__dataclass_fields__") and (
         "cov" in unc.ExperimentNoiseLevels.__dataclass_fields__)
@@ -162,6 +190,29 @@ def main(argv=None):
                 emit(f"| {ratio:g} | {kind} | {P} | {len(b)} | "
                      f"{sum(r[4] == 'W' for r in b)} | "
                      f"{sum(r[4] == '!' for r in b)} |")
+    emit("")
+    emit("The test's statistic on the unweighted levels (largest standardised "
+         "difference over the pairs whose ratio exceeds EQUAL_NOISE_RATIO; "
+         "-inf: none): records above z, % (the first step's flag; W needs the "
+         "weighted re-estimation to settle too)")
+    grid = (2.5, 3.0, 3.25, 3.5, 3.75, 4.0)
+    emit("| noise std ratio | residual dof per window | "
+         + " | ".join(f"z > {z:g}" for z in grid) + " |")
+    emit("|---|---|" + "---|" * len(grid))
+    for ratio in args.ratios:
+        sel = [r for r in rows if r[0] == ratio]
+        for lo, hi in BUCKETS + [(3, 60)]:
+            b = np.array([r[5] for r in sel if lo <= r[3] <= hi])
+            if not b.size:
+                continue
+            label = f"{lo}-{hi}" if (lo, hi) != (3, 60) else "all"
+            emit(f"| {ratio:g} | {label} | "
+                 + " | ".join(f"{100 * np.mean(b > z):.1f}" for z in grid) + " |")
+    if 1.0 in args.ratios:
+        top = sorted((r[5] for r in rows if r[0] == 1.0), reverse=True)[:5]
+        emit("")
+        emit("largest statistics at equal noise: "
+             + ", ".join(f"{t:.2f}" for t in top))
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text("\n".join(lines) + "\n")

@@ -216,13 +216,15 @@ def test_level_difference_spread_matches_monte_carlo(amplitudes):
     ``ExperimentNoiseLevels.cov``, against the spread of the level difference
     over noise draws at equal noise (SISO, P = 2, 15 residual dof per window,
     inputs of equal or 4x different RMS, fixed; 400 draws): the std of ``z =
-    (ratio_0 - ratio_1) / scale`` must be in [0.7, 1.15] (measured 0.92 and
-    0.84; the std of a std from 400 draws is about 3.5 %). Below 1: each
-    window's energies are divided by its own estimated level, which the
-    quadratic-form variance leaves out (on synthetic projectors it is exact
-    with the true level, 0.78-0.94x in variance with the estimated one): the
-    test is a little conservative. The Satterthwaite spread of earlier
-    versions, on the log ratio, gave a std of z of 1.43 and 1.39 here."""
+    (ratio_0 - ratio_1) / scale`` must be in [0.8, 1.1] (measured 0.96 and
+    0.87; the std of a std from 400 draws is about 3.5 %). Before lvl31 the
+    covariance left out the division of each window's energies by its own
+    estimated level (measured 0.92 and 0.84 then, within this band too: the
+    synthetic test below pins that correction, exact there). The rest of the
+    gap at 4x input RMS is of the fit itself (the fitted denominator and
+    ``|e(x)|^2``, not a fixed projector): the test is a little conservative
+    there. The Satterthwaite spread of earlier versions, on the log ratio,
+    gave a std of z of 1.43 and 1.39 here."""
     from lrmfrf.uncertainty import experiment_noise_levels
 
     F, M = 3, 400
@@ -241,7 +243,7 @@ def test_level_difference_spread_matches_monte_carlo(amplitudes):
         v = levels.cov[..., 0]
         z.append((levels.ratio[0, 0] - levels.ratio[1, 0])
                  / np.sqrt(v[0, 0] + v[1, 1] - 2 * v[0, 1]))
-    assert 0.7 < np.std(z) < 1.15, np.std(z)
+    assert 0.8 < np.std(z) < 1.1, np.std(z)
 
 
 def test_a_row_whose_level_does_not_settle_is_fitted_pooled_alone(monkeypatch):
@@ -276,3 +278,35 @@ def test_a_row_whose_level_does_not_settle_is_fitted_pooled_alone(monkeypatch):
     # the same fixed point; re-estimated until the iterations run out
     # instead of stopping once every row settled (each step < WEIGHT_TOL)
     np.testing.assert_allclose(weights[:, 1:], plain[:, 1:], rtol=unc.WEIGHT_TOL)
+
+
+def test_level_covariance_includes_the_division_by_the_window_level():
+    """``_noise_levels_of_row`` on synthetic windows where its covariance is
+    exact: fixed random regressors (16 windows, P = 2, L = 9, 4 residual dof
+    per window), the denominator column 1e3 times larger than the noise so
+    the fitted ``|e(x)|^2`` is 1 to 1e-3 (``W = I``: the residual's direction
+    is independent of its norm, and ``J C J^T / (1 + v)`` is the exact
+    covariance of a window's normalised energies). Over 1500 noise draws the
+    std of ``z = (ratio_0 - ratio_1) / sd`` must be within 6 % of 1 (the std
+    of a std from 1500 draws is about 1.8 %). Measured 0.986; 0.84 with the
+    plain quadratic-form covariance of review31, which leaves out the
+    division by each window's estimated level (fails here)."""
+    from lrmfrf.uncertainty import _noise_levels_of_row, _SharedColumns
+
+    rng = np.random.default_rng(1)
+    B, P, n = 16, 2, 4
+    L = 2 * n + 1
+    layout = LocalModelLayout(F=2, n_experiments=P, n_inputs=1, half_window=n,
+                              num_degree=1, transient_degree=1, den_degree=1)
+
+    def cn(*shape):
+        return rng.standard_normal(shape) + 1j * rng.standard_normal(shape)
+
+    shared = _SharedColumns.of(cn(B, P * L, P * L - 5))
+    A = 1e3 * cn(B, P * L, 1)
+    z = []
+    for _ in range(1500):
+        ratio, clamped, v = _noise_levels_of_row(shared, A, cn(B, P * L), layout)
+        assert not clamped
+        z.append((ratio[0] - ratio[1]) / np.sqrt(v[0, 0] + v[1, 1] - 2 * v[0, 1]))
+    assert abs(np.std(z) - 1.0) < 0.06, np.std(z)

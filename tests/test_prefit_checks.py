@@ -64,8 +64,14 @@ def _levels_direct(spectra, layout, weights=None, max_windows=16):
             K = [proj.conj().T @ np.diag(np.repeat(np.eye(P)[p], L)) @ proj
                  for p in range(P)]
             W = np.diag(w)
-            covs.append([[np.real(np.trace(K[p] @ W @ K[q] @ W)) for q in range(P)]
-                         for p in range(P)])
+            C = np.array([[np.real(np.trace(K[p] @ W @ K[q] @ W)) for q in range(P)]
+                          for p in range(P)])
+            # the energies divided by the window's level sum(E) / g: first
+            # order J = d(g E / sum(E)) / dE at E = M 1, and the finite-dof
+            # factor 1 / (1 + var(sum(E)) / g^2)
+            g = gains[-1].sum()
+            J = np.eye(P) - np.outer(gains[-1].sum(axis=1), np.ones(P)) / g
+            covs.append(J @ C @ J.T / (1.0 + C.sum() / g**2))
         gain, energy = np.array(gains), np.array(energies)
         level = energy.sum(axis=1) / gain.sum(axis=(1, 2))
         G_inv = np.linalg.inv(gain.sum(axis=0))
