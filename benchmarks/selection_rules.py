@@ -55,6 +55,7 @@ from generalisation_selection import (
     record_ingredients,
     regenerate_record,
     stage_systems,
+    worst_stage_mean,
 )
 
 from lrmfrf import LRMBeyondNyquist
@@ -394,12 +395,15 @@ def main(argv=None) -> int:
     key, fixed = fixed_setting(records)
     closed = np.array(["/closed/" in rec["label"] for rec in records])
     print(f"{len(rows)} records; ratio = error / oracle error; mean, worst, "
-          "records above 1.25, mean closed / open loop")
+          "records above 1.25, mean closed / open loop, worst stage (the mean "
+          "of its records)")
     names = [*rows[0], f"fixed {key}"]
     for name in names:
         a = np.array(fixed if name.startswith("fixed") else [r[name] for r in rows])
+        stage = worst_stage_mean([{"label": rec["label"], name: x}
+                                  for rec, x in zip(records, a, strict=True)], name)
         print(f"{name:22s}{a.mean():7.3f}{a.max():7.3f}{np.sum(a > 1.25):4d}"
-              f"{a[closed].mean():8.3f}{a[~closed].mean():7.3f}")
+              f"{a[closed].mean():8.3f}{a[~closed].mean():7.3f}{stage:7.3f}")
     if args.diagnose:
         print_diagnoses(records, rows)
     return 0
