@@ -1319,7 +1319,7 @@ EQUAL_NOISE_RATIO = 1.5
 EQUAL_NOISE_Z = 4.0
 
 #: :func:`experiment_noise_weights`: re-estimations of the levels on the
-#: weighted fit; without convergence by then the rows are not weighted.
+#: weighted fit; a row without convergence by then is not weighted.
 #: (``benchmarks/unequal_noise.py``, variance ratio 100: one record of 120
 #: needed 10, the contraction about 0.6 per step.)
 NOISE_WEIGHT_ITERATIONS = 16
