@@ -297,9 +297,13 @@ def cross_row_covariance(
     U : ndarray of shape (P, n_u N), complex
         The input spectra of the fit (as :func:`variance_terms`).
     Ys : sequence of ndarray of shape (P, M), complex
-        The output spectra of each row. Rows fitted on weighted experiments
-        (:func:`experiment_noise_weights`) give ``(U_o, Y_o)`` pairs instead
-        (``U`` then None): each row's regressors from its own spectra.
+        The output spectra of each row; or ``(U_o, Y_o)`` pairs (``U`` then
+        None): each row's regressors from its own spectra. Rows fitted on
+        weighted experiments (:func:`experiment_noise_weights`) are best
+        given by ``weights`` with the records' spectra and ``local_fit_``'s
+        parameters; as pairs of weighted copies ``(U w, Y w)`` their
+        ``thetas`` must hold the weighted fit's transient (``local_fit_``'s
+        scaled by ``w``), else the residuals carry the mismatch.
     layout : LocalModelLayout
     thetas : sequence of ndarray of shape (B, n_params), complex
         The closed-form parameters of each row (NaN rows: NaN).
