@@ -297,9 +297,13 @@ def cross_row_covariance(
     U : ndarray of shape (P, n_u N), complex
         The input spectra of the fit (as :func:`variance_terms`).
     Ys : sequence of ndarray of shape (P, M), complex
-        The output spectra of each row. Rows fitted on weighted experiments
-        (:func:`experiment_noise_weights`) give ``(U_o, Y_o)`` pairs instead
-        (``U`` then None): each row's regressors from its own spectra.
+        The output spectra of each row; or ``(U_o, Y_o)`` pairs (``U`` then
+        None): each row's regressors from its own spectra. Rows fitted on
+        weighted experiments (:func:`experiment_noise_weights`) are best
+        given by ``weights`` with the records' spectra and ``local_fit_``'s
+        parameters; as pairs of weighted copies ``(U w, Y w)`` their
+        ``thetas`` must hold the weighted fit's transient (``local_fit_``'s
+        scaled by ``w``), else the residuals carry the mismatch.
     layout : LocalModelLayout
     thetas : sequence of ndarray of shape (B, n_params), complex
         The closed-form parameters of each row (NaN rows: NaN).
@@ -308,8 +312,10 @@ def cross_row_covariance(
     chunk_size : int, optional
         Windows per batch.
     weights : sequence of (ndarray of shape (P,) or None), optional
-        Per row, the experiments' weights of a row fitted on weighted
-        experiments (:func:`experiment_noise_weights`): its equations of
+        Per row (a list, not a 2-D array: from the ``(P, n_y)`` array of
+        :func:`experiment_noise_weights` pass ``[w[:, o] for o in
+        range(n_y)]``), the experiments' weights of a row fitted on weighted
+        experiments (finite, positive): its equations of
         experiment ``p`` are multiplied by ``weights[o][p]`` window by
         window (no weighted copy of the spectra), and ``thetas[o]`` holds
         the parameters with the transient unweighted (the records' units,
@@ -335,11 +341,7 @@ def cross_row_covariance(
         )
     pairs = [(U, Y) if U is not None else tuple(Y) for Y in Ys]
     n_y, nb = len(pairs), layout.n_bands
-    if weights is None:
-        weights = [None] * n_y
-    if len(weights) != n_y:
-        raise ValueError(f"`weights` must give one entry per output row ({n_y}); "
-                         f"got {len(weights)}.")
+    weights = _row_weights(weights, n_y, layout.n_experiments)
     slow_bins = np.asarray(slow_bins, dtype=int)
     # every row's regressor, hat matrix and solution operator of a chunk are
     # held at once: the QR solver's chunk over 2 n_y keeps them near a few
@@ -377,6 +379,38 @@ def cross_row_covariance(
                             np.swapaxes(block, 1, 2))
     _shrink_to_semidefinite(out.reshape(slow_bins.size, n_y * nb, n_y * nb), nb)
     return out
+
+
+def _row_weights(weights, n_y: int, P: int) -> list:
+    """:func:`cross_row_covariance`'s ``weights`` checked: one entry per
+    output row, None or the row's ``P`` experiment weights (finite, > 0).
+
+    A 2-D array is refused: :func:`experiment_noise_weights` gives ``(P,
+    n_y)`` and a list of rows would read ``(n_y, P)``; with ``P == n_y`` one
+    would be taken for the other without an error."""
+    if weights is None:
+        return [None] * n_y
+    if isinstance(weights, np.ndarray) and weights.ndim != 1:
+        raise ValueError(
+            f"`weights` must be a sequence with one entry per output row (None "
+            f"or the row's {P} experiment weights), not an array of shape "
+            f"{weights.shape}; for experiment_noise_weights' (P, n_y) array "
+            "pass [w[:, o] for o in range(n_y)]."
+        )
+    if len(weights) != n_y:
+        raise ValueError(f"`weights` must give one entry per output row ({n_y}); "
+                         f"got {len(weights)}.")
+    checked = []
+    for o, w in enumerate(weights):
+        if w is not None:
+            w = np.asarray(w, dtype=float)
+            if w.shape != (P,) or not np.all(np.isfinite(w) & (w > 0)):
+                raise ValueError(
+                    f"`weights[{o}]` must be None or {P} finite positive "
+                    f"experiment weights, shape ({P},); got {w!r}."
+                )
+        checked.append(w)
+    return checked
 
 
 def _shrink_to_semidefinite(joint: np.ndarray, block: int) -> None:
@@ -1289,7 +1323,7 @@ EQUAL_NOISE_RATIO = 1.5
 EQUAL_NOISE_Z = 4.0
 
 #: :func:`experiment_noise_weights`: re-estimations of the levels on the
-#: weighted fit; without convergence by then the rows are not weighted.
+#: weighted fit; a row without convergence by then is not weighted.
 #: (``benchmarks/unequal_noise.py``, variance ratio 100: one record of 120
 #: needed 10, the contraction about 0.6 per step.)
 NOISE_WEIGHT_ITERATIONS = 16

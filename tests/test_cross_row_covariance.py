@@ -195,3 +195,66 @@ def test_rows_without_input_spectra_must_be_pairs():
     thetas = [np.zeros((1, layout.n_params), dtype=complex)] * 2
     with pytest.raises(ValueError, match=r"\(U_o, Y_o\) pair"):
         cross_row_covariance(None, [Y, Y], layout, thetas, np.array([3]))
+
+
+def _random_windows(P=2, n_u=2, M=60):
+    """Random spectra (P, n_u N) and two rows' (P, M), a 2-input layout and
+    random parameters of 12 windows: the covariance's algebra, not a fit."""
+    from lrmfrf.local_models import LocalModelLayout
+
+    rng = np.random.default_rng(0)
+    layout = LocalModelLayout(F=2, n_experiments=P, n_inputs=n_u, half_window=6,
+                              num_degree=1, transient_degree=1, den_degree=1)
+
+    def cn(*shape):
+        return rng.standard_normal(shape) + 1j * rng.standard_normal(shape)
+
+    bins = np.arange(8, 20)
+    return (layout, cn(P, n_u * 2 * M), [cn(P, M), cn(P, M)],
+            [cn(bins.size, layout.n_params) for _ in range(2)], bins)
+
+
+def test_weighted_rows_equal_the_weighted_spectra_with_the_weighted_transient():
+    """``cross_row_covariance(weights=...)`` (the thetas' transient
+    unweighted) is the local problem of the weighted copies ``(U w, Y w)``
+    with the transient weighted, as its docstring says (to round-off; the
+    values are O(1))."""
+    from lrmfrf.uncertainty import cross_row_covariance
+
+    layout, U, Ys, thetas, bins = _random_windows()
+    w = np.array([1.0, 0.3])
+    unweighted = thetas[0].copy()
+    for p in range(layout.n_experiments):  # the records' transient
+        start = layout.transient_column(p)
+        unweighted[:, start:start + layout.transient_degree + 1] /= w[p]
+    ours = cross_row_covariance(U, Ys, layout, [unweighted, thetas[1]], bins,
+                                weights=[w, None])
+    copies = cross_row_covariance(None, [(U * w[:, None], Ys[0] * w[:, None]),
+                                         (U, Ys[1])], layout, thetas, bins)
+    assert np.isfinite(copies).all()
+    np.testing.assert_allclose(ours, copies, rtol=0, atol=1e-12 * np.abs(copies).max())
+
+
+def test_weights_are_one_entry_per_row():
+    """``weights`` is a list per output row. The (P, n_y) array of
+    experiment_noise_weights (or noise_weights_) given as it is was read
+    row by row, i.e. transposed, without an error when P == n_y (here 2 x
+    2: row 0 got experiment 0's weights of both rows, 41 % off); an entry of
+    the wrong length failed deep in numpy, a NaN weight was taken. Now each
+    is an error that says what to pass."""
+    from lrmfrf.uncertainty import cross_row_covariance
+
+    layout, U, Ys, thetas, bins = _random_windows()
+    W = np.array([[1.0, 1.0], [0.3, 1.0]])  # (P, n_y): row 0 weighted
+    with pytest.raises(ValueError, match=r"not an array of shape \(2, 2\)"):
+        cross_row_covariance(U, Ys, layout, thetas, bins, weights=W)
+    for bad in ([np.array([1.0, 0.3, 1.0]), None], [np.array([1.0, np.nan]), None],
+                [np.array([1.0, 0.0]), None], [0.5, None]):
+        with pytest.raises(ValueError, match=r"weights\[0\]` must be None or 2"):
+            cross_row_covariance(U, Ys, layout, thetas, bins, weights=bad)
+    # the list the message asks for gives the row-0-weighted result
+    listed = cross_row_covariance(U, Ys, layout, thetas, bins,
+                                  weights=[W[:, o] for o in range(2)])
+    np.testing.assert_array_equal(
+        listed, cross_row_covariance(U, Ys, layout, thetas, bins,
+                                     weights=[W[:, 0], None]))

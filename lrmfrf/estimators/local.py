@@ -1118,17 +1118,9 @@ def _unweighted(fit, weights, o):
     denominator are those of the weighted fit."""
     if weights is None or not np.any(weights[:, o] != 1.0):
         return fit
-    theta = _transient_scaled(fit.theta, fit.layout, weights[:, o], np.divide)
-    return replace(fit, theta=theta, transient=fit.transient / weights[:, o])
-
-
-def _transient_scaled(theta, layout, weights, operation):
-    """A copy of ``theta`` (B, n_params) with experiment ``p``'s transient
-    coefficients ``operation``-ed by ``weights[p]`` (``np.multiply``: the
-    weighted fit's, ``np.divide``: the records')."""
-    theta = theta.copy()
+    layout = fit.layout
+    theta = fit.theta.copy()
     for p in range(layout.n_experiments):
-        cols = slice(layout.transient_column(p),
-                     layout.transient_column(p) + layout.transient_degree + 1)
-        theta[:, cols] = operation(theta[:, cols], weights[p])
-    return theta
+        start = layout.transient_column(p)
+        theta[:, start:start + layout.transient_degree + 1] /= weights[p, o]
+    return replace(fit, theta=theta, transient=fit.transient / weights[:, o])
