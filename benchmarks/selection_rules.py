@@ -22,6 +22,10 @@ h5`` (``per_band=True``: candidates weighted per slow bin by
 averaged over 11 slow bins), ``blend b10 h10`` (softer weights, 21 bins) and
 ``mix`` (the mean of the PMSE pick's and the ``b30 h5`` blend's band values).
 
+``--mix`` also prints the mixes ``a`` times the PMSE pick's band values plus
+``1 - a`` times a per-bin blend's (:func:`mix_ratios`; ``a`` = 0.3, 0.5, 0.7,
+blends at sharpness / half width 30 / 5, 10 / 10, 100 / 5, 30 / 10).
+
 ``--diagnose`` also prints, for each record where PMSE is above 1.25x, why
 (:func:`diagnose`): the share of the oracle's bins above 30 % relative error,
 PMSE's predicted over actual error for the oracle's setting and its own pick,
@@ -257,6 +261,25 @@ def rule_ratios(rec) -> dict:
     return ratio
 
 
+#: ``--mix``: (sharpness, half width) of the blend and the PMSE pick's share.
+MIX_BLENDS = ((30.0, 5), (10.0, 10), (100.0, 5), (30.0, 10))
+MIX_SHARES = (0.3, 0.5, 0.7)
+
+
+def mix_ratios(rec) -> dict:
+    """Error over the oracle's of ``a`` times the PMSE pick's band values plus
+    ``1 - a`` times the per-bin blend's, per (sharpness, half width, a)."""
+    oracle = rec["errors"].min()
+    chosen = rec["band"][pick(rec, "pmse")]
+    out = {}
+    for sharpness, half_width in MIX_BLENDS:
+        blend = blend_band(rec, sharpness, half_width)
+        for a in MIX_SHARES:
+            out[(sharpness, half_width, a)] = band_error(
+                rec, a * chosen + (1 - a) * blend) / oracle
+    return out
+
+
 def _setting(rec, i) -> tuple:
     return tuple(rec["grid"][i].values())
 
@@ -371,6 +394,9 @@ def main(argv=None) -> int:
                         help="time PMSE's scoring (closed form vs QR) and GAIC")
     parser.add_argument("--diagnose", action="store_true",
                         help="also print why PMSE misses the records above 1.25x")
+    parser.add_argument("--mix", action="store_true",
+                        help="also print the PMSE pick / blend mixes "
+                        "(mix_ratios)")
     args = parser.parse_args(argv)
     if args.speed:
         times = pmse_speed()
@@ -406,6 +432,14 @@ def main(argv=None) -> int:
               f"{a[closed].mean():8.3f}{a[~closed].mean():7.3f}{stage:7.3f}")
     if args.diagnose:
         print_diagnoses(records, rows)
+    if args.mix:
+        mixes = [mix_ratios(rec) for rec in records]
+        print("\nmix a * pmse pick + (1 - a) * blend (sharpness, half width, a): "
+              "mean, worst, records above 1.25")
+        for key in mixes[0]:
+            a = np.array([m[key] for m in mixes])
+            print(f"{str(key):22s}{a.mean():7.3f}{a.max():7.3f}"
+                  f"{np.sum(a > 1.25):4d}")
     return 0
 
 
