@@ -391,8 +391,8 @@ def selection_table(seeds, *, criteria=CRITERIA, n_jobs: int = 1,
     dict
         ``rows`` (one per record: label, F, snr, oracle setting and error, the
         ratio of each criterion), ``summary`` (per criterion and ``fixed``:
-        mean and worst ratio, and the worst stage's mean ratio,
-        :func:`worst_stage_mean`), ``fixed`` (the best single setting).
+        mean and worst ratio, and the worst stage's mean ratio per seed and
+        per seed and loop, :func:`worst_stage_mean`), ``fixed`` (the best single setting).
     """
     if records is None:
         systems = mimo_stage_systems if mimo else stage_systems
@@ -428,19 +428,24 @@ def selection_table(seeds, *, criteria=CRITERIA, n_jobs: int = 1,
     names = (*criteria, "fixed") + (("per_band",) if "per_band" in rows[0] else ())
     summary = {name: (float(np.mean([r[name] for r in rows])),
                       float(np.max([r[name] for r in rows])),
-                      worst_stage_mean(rows, name))
+                      worst_stage_mean(rows, name),
+                      worst_stage_mean(rows, name, parts=2))
                for name in names}
     return {"rows": rows, "summary": summary, "fixed": best_key,
             "records": records}
 
 
-def worst_stage_mean(rows, name: str) -> float:
-    """The largest mean ratio over one stage's records (its closed- and
-    open-loop ``G_y4`` and ``G_z``; the label up to the first ``/`` names the
-    stage): the issue's "worst" read per stage rather than per record."""
+def worst_stage_mean(rows, name: str, parts: int = 1) -> float:
+    """The largest mean ratio over one stage's records: the issue's "worst"
+    read per stage rather than per record. The first ``parts`` fields of the
+    label (``seed/loop/output``) name the stage: ``parts=1`` a seed's four
+    records (closed- and open-loop ``G_y4`` and ``G_z``), ``parts=2`` a
+    seed's closed- or open-loop stage (``random_stage(loop=...)``) with its
+    two outputs."""
     stages = {}
     for row in rows:
-        stages.setdefault(row["label"].split("/")[0], []).append(row[name])
+        key = "/".join(row["label"].split("/")[:parts])
+        stages.setdefault(key, []).append(row[name])
     return float(max(np.mean(v) for v in stages.values()))
 
 
@@ -526,10 +531,10 @@ def main(argv=None) -> int:
           f"M = {SLOW_SAMPLES}, SNR {SNR_RANGE[0]:g}-{SNR_RANGE[1]:g} dB; "
           "ratio = pick error / oracle error (median rel. error, valid bins)")
     print(f"{'criterion':14s}{'mean':>8s}{'worst':>8s}  worst stage (mean of "
-          "its records)")
-    for name, (mean, worst, stage) in table["summary"].items():
+          "its records): per seed, per seed and loop")
+    for name, (mean, worst, stage, loop) in table["summary"].items():
         label = f"fixed {table['fixed']}" if name == "fixed" else name
-        print(f"{label:14s}{mean:8.3f}{worst:8.3f}{stage:8.3f}")
+        print(f"{label:14s}{mean:8.3f}{worst:8.3f}{stage:8.3f}{loop:8.3f}")
     if args.csv:
         with open(args.csv, "w", newline="") as fh:
             writer = csv.DictWriter(fh, fieldnames=list(rows[0]))

@@ -422,14 +422,16 @@ def main(argv=None) -> int:
     closed = np.array(["/closed/" in rec["label"] for rec in records])
     print(f"{len(rows)} records; ratio = error / oracle error; mean, worst, "
           "records above 1.25, mean closed / open loop, worst stage (the mean "
-          "of its records)")
+          "of its records) per seed and per seed and loop")
     names = [*rows[0], f"fixed {key}"]
     for name in names:
         a = np.array(fixed if name.startswith("fixed") else [r[name] for r in rows])
-        stage = worst_stage_mean([{"label": rec["label"], name: x}
-                                  for rec, x in zip(records, a, strict=True)], name)
+        labelled = [{"label": rec["label"], name: x}
+                    for rec, x in zip(records, a, strict=True)]
+        stage = [worst_stage_mean(labelled, name, parts) for parts in (1, 2)]
         print(f"{name:22s}{a.mean():7.3f}{a.max():7.3f}{np.sum(a > 1.25):4d}"
-              f"{a[closed].mean():8.3f}{a[~closed].mean():7.3f}{stage:7.3f}")
+              f"{a[closed].mean():8.3f}{a[~closed].mean():7.3f}"
+              f"{stage[0]:7.3f}{stage[1]:7.3f}")
     if args.diagnose:
         print_diagnoses(records, rows)
     if args.mix:
