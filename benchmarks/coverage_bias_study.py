@@ -52,6 +52,35 @@ route), on the same fits:
     A bias term added to another base (``eiv_t``, ``pool``, ``pmed``,
     ``switch<c>``, ``shrink``) instead of ``eiv``; ``nbr_c4+ref2m_c8`` adds
     the larger of the two terms.
+``<r><mode>`` (richer levels)
+    The noise level of each window from another local fit ``r`` of the same
+    record (:func:`rich_settings`: ``rnt1`` numerator and transient degree
+    + 1, ``rn1`` numerator + 1, ``rtr2`` transient + 2, ``rden1``
+    denominator + 1, all on the same window; ``ref1``, ``ref2`` the reference
+    fits above), its own ``||r||^2 / sum |e|^2 (1 - h)`` (its residual,
+    denominator and leverages) on the main fit's sandwich shape. ``own``:
+    that level as it is; ``sw2``: :func:`~lrmfrf.uncertainty.robust_noise_variance`
+    of it (switch 2, the fit's own dof); ``hyb``: its own level where
+    ``switch2`` of the main fit keeps the window's own level, its neighbours'
+    median elsewhere; ``cal``: its levels scaled, record by record, by the
+    median over the windows of main level / its level, then ``switch2`` with
+    the main fit's dof (``ref2cal+nbr_c4``: the draft ``std_method=
+    "eiv_rich"`` of ``benchmarks/results/coverage_rich_eiv_rich_draft.patch``,
+    not in the library). ``ref2`` is narrower rather than richer (numerator
+    and transient degrees 3 and 2). On the tuning seeds (F = 2, 3, 5 at 30,
+    45, 70 dB) the own levels of the richer same-window fits sit below the
+    main fit's at every SNR (the fewer residual dof, the more noise the
+    noisy denominator columns absorb: ``rnt1own`` 0.83-0.99x the MC std),
+    and rise from 30 to 70 dB as much as the main fit's does; no richer
+    route meets both targets in more cells than ``switch2+nbr_c4`` (7 of 9;
+    ``ref2cal+nbr_c4`` also 7: F = 5, 70 dB met at 1.042, F = 3, 30 dB missed
+    at 96.17 %).
+    Windows where the fit is not well posed take ``switch2``'s level. With
+    the neighbour terms only (``+nbr_c4``, ``+nbr_c8``, ``+nbr_c4+ref2m_c8``).
+``true``
+    Diagnostic, not a route: the true noise level ``M sigma^2`` on the eiv
+    sandwich (``eiv_true`` of ``generalisation_std.py``; ``true+nbr_c4`` with
+    the neighbour term).
 ``MC``
     The Monte-Carlo std itself (the spread around the MC mean): the best a
     per-bin std can do.
@@ -75,7 +104,11 @@ few minutes each on a loaded 2-core machine)::
         --snr 25 30 45 70 --seeds 1000-1009 --runs 30 --save /tmp/cb_F3.npz
     python benchmarks/coverage_bias_study.py --load /tmp/cb_F3.npz
 
-Tuning: seeds 1000-1009; held-out: seeds 2000-2009.
+Tuning: seeds 1000-1009; held-out: seeds 2000-2009. ``--rich`` limits the
+richer fits collected (their levels only; ``ref1``, ``ref2`` always), e.g.
+``--rich`` alone for ``ref2cal`` and the old routes. Data saved before the
+richer levels evaluate as before (those routes left out); ``true`` is
+recomputed from the seeds (``--seeds`` must be those of the saved data).
 """
 
 from __future__ import annotations
@@ -114,6 +147,33 @@ def ref_settings(F):
             "ref2": {"half_window": n - 4, "num_degree": 3, "transient_degree": 2}}
 
 
+def rich_settings(F):
+    """Richer local fits whose residual gives the noise LEVEL only (the
+    ``rich`` routes): same window, one more numerator and transient degree
+    (``rnt1``), numerator only (``rn1``), transient + 2 (``rtr2``),
+    denominator + 1 (``rden1``); ``ref1`` (denominator + 2) and ``ref2``
+    (the narrower window) are the reference fits above."""
+    n = HALF_WINDOW[F]
+    return {"rnt1": {"half_window": n, "num_degree": 5, "transient_degree": 5},
+            "rn1": {"half_window": n, "num_degree": 5},
+            "rtr2": {"half_window": n, "transient_degree": 6},
+            "rden1": {"half_window": n, "den_degree": 8}}
+
+
+#: Fits whose own noise level ``||r||^2 / sum |e|^2 (1 - h)`` is collected.
+RICH = ("ref1", "ref2", "rnt1", "rn1", "rtr2", "rden1")
+
+
+def fit_level(U, Y, est):
+    """``||r||^2 / sum |e|^2 (1 - h)`` of each window of the fit ``est`` (its
+    own residual, denominator and leverages), slow bins 0..M//2."""
+    lf = est.local_fit_
+    _, trace = eiv_terms(U, Y, est.layout_, lf.theta, lf.slow_bins,
+                         backend="numba")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return lf.rss / trace
+
+
 def kappa(q):
     """Variance factor that gives 98.2 % 2-std coverage with ``q`` complex dof."""
     return q * (np.exp(4.0 / q) - 1.0) / 4.0
@@ -139,8 +199,10 @@ def pooled_factor(U, Y, est):
         return pooled / local, local
 
 
-def collect(system, F, snr_db, n_runs, seed):
-    """Estimates and route ingredients of ``n_runs`` records of one system."""
+def collect(system, F, snr_db, n_runs, seed, rich_fits=None):
+    """Estimates and route ingredients of ``n_runs`` records of one system
+    (``rich_fits``: the names of :func:`rich_settings` to fit, default all;
+    the levels of ``ref1``, ``ref2`` are always collected)."""
     rng = np.random.default_rng(seed)
     N = N_SLOW * F
     u = multisine(N, rms=1.44, rng=rng)
@@ -152,6 +214,11 @@ def collect(system, F, snr_db, n_runs, seed):
     refs = ref_settings(F)
     keys = ["G", "v", "d", "pool", "s2"]
     keys += [f"{r}_{x}" for r in refs for x in ("G", "v")]
+    keys += [f"{r}_s2" for r in RICH]
+    rich = {r: kw for r, kw in rich_settings(F).items()
+            if rich_fits is None or r in rich_fits}
+    keys = [k for k in keys if not k.endswith("_s2") or k[:-3] in refs
+            or k[:-3] in rich]
     out = {k: [] for k in keys}
     q = {}
     for _ in range(n_runs):
@@ -172,10 +239,30 @@ def collect(system, F, snr_db, n_runs, seed):
             q[r] = ref.layout_.dof
             out[f"{r}_G"].append(ref.frf_)
             out[f"{r}_v"].append(ref.frf_std_**2)
+            out[f"{r}_s2"].append(fit_level(U, dft(y)[None], ref))
+        for r, kw in rich.items():  # (the level only: no variance needed)
+            fit = LRMBeyondNyquist(std_method="lemma2", **kw).fit(u, y, F)
+            q[r] = fit.layout_.dof
+            out[f"{r}_s2"].append(fit_level(U, dft(y)[None], fit))
     data = {k: np.array(v) for k, v in out.items()}
     data["truth"] = truth
     data["q"] = q
+    data["true_s2"] = N_SLOW * sigma**2  # E |V_l(k)|^2 (diagnostic only)
     return data
+
+
+def add_true_level(raw, seeds):
+    """Put the true noise level ``M sigma^2`` into data saved without it (the
+    noise std of ``collect``'s record, recomputed from its seeds: no fit)."""
+    for (F, snr), cell in raw.items():
+        if all("true_s2" in d for d in cell):
+            continue
+        systems = stage_systems(seeds, F, alternate=True)
+        for i, (d, (_, system)) in enumerate(zip(cell, systems, strict=True)):
+            rng = np.random.default_rng(1000 * i + F)
+            u = multisine(N_SLOW * F, rms=1.44, rng=rng)
+            clean = simulate(system, u, F, snr_db=snr, rng=rng)
+            d["true_s2"] = N_SLOW * float(clean.noise_std) ** 2
 
 
 def bias_term(G, v, Gr, vr, c):
@@ -221,6 +308,41 @@ def noise_levels(data, F):
         # the window's own level where it is well above its neighbours'
         # (model misfit), the neighbours' median elsewhere
         out[f"switch{c:g}"] = level(c) / s2
+    # the richer fits' levels on the main fit's sandwich shape
+    main_switched = level(2.0) > level(np.inf)  # where switch2 keeps its own
+    for r in RICH:
+        if f"{r}_s2" not in data:  # (data saved before the rich levels)
+            continue
+        rs2, qr = data[f"{r}_s2"], data["q"][r]
+
+        def rich_level(switch, rs2=rs2, qr=qr):
+            return np.array([robust_noise_variance(x, np.ones(B), bins, M,
+                                                   HALF_WINDOW[F], qr,
+                                                   switch=switch)
+                             for x in rs2])
+
+        med = rich_level(np.inf)
+        # own: the richer fit's own level (as eiv, no median)
+        out[f"{r}own"] = rs2 / s2
+        # sw2: switch2 on the richer fit's levels (its own dof)
+        out[f"{r}sw2"] = rich_level(2.0) / s2
+        # hyb: where switch2 of the MAIN fit keeps its own level (misfit
+        # there), the richer fit's own level; its neighbours' median elsewhere
+        out[f"{r}hyb"] = np.where(main_switched, rs2, med) / s2
+        # cal: the richer fit's levels scaled, record by record, to the main
+        # fit's in the median over the windows (the richer fit absorbs more
+        # of the noise, at fewer dof), then sw2 with the main fit's dof
+        with np.errstate(invalid="ignore", divide="ignore"):
+            scale = np.nanmedian(s2 / rs2, axis=1, keepdims=True)
+        cal = rs2 * scale
+        out[f"{r}cal"] = np.array([
+            robust_noise_variance(x, np.ones(B), bins, M, HALF_WINDOW[F], q,
+                                  switch=2.0) for x in cal]) / s2
+        for mode in ("own", "sw2", "hyb", "cal"):
+            x = out[f"{r}{mode}"]  # the richer fit not well posed: switch2's
+            out[f"{r}{mode}"] = np.where(np.isfinite(x), x, out["switch2"])
+    if "true_s2" in data:  # diagnostic: the true level (not a route)
+        out["true"] = data["true_s2"] / s2
     return out
 
 
@@ -251,8 +373,11 @@ def route_variances(data, bins):
         terms[f"nbr_c{c:g}"] = nbr_term(data["d"], v, bins, c)
     # both misfit indicators: the larger of the two terms
     terms["nbr_c4+ref2m_c8"] = np.maximum(terms["nbr_c4"], terms["ref2m_c8"])
+    rich = {b for b in bases if b.startswith(RICH + ("true",))}
     for name, add in terms.items():
         for base, bv in bases.items():
+            if base in rich and not name.startswith("nbr_c"):
+                continue  # (the richer levels: with the neighbour terms only)
             routes[name if base == "eiv" else f"{base}+{name}"] = bv + add
     return routes
 
@@ -336,6 +461,9 @@ def main(argv=None):
     parser.add_argument("--save", help="pickle the raw per-system data here")
     parser.add_argument("--load", nargs="+", help="evaluate saved data only")
     parser.add_argument("--routes", nargs="+", help="routes to print")
+    parser.add_argument("--rich", nargs="*",
+                        help="richer fits to collect (default: all of "
+                             "rich_settings; ref1, ref2 always)")
     parser.add_argument("--cost", action="store_true",
                         help="instead: CPU of each route over one default fit")
     args = parser.parse_args(argv)
@@ -349,6 +477,7 @@ def main(argv=None):
         for path in args.load:
             with open(path, "rb") as fh:
                 raw.update(pickle.load(fh))
+        add_true_level(raw, _seed_range(args.seeds))
     else:
         raw = {}
         start = time.perf_counter()
@@ -360,7 +489,7 @@ def main(argv=None):
                     with warnings.catch_warnings():
                         warnings.simplefilter("ignore")
                         cell.append(collect(system, F, snr, args.runs,
-                                            1000 * i + F))
+                                            1000 * i + F, args.rich))
                 raw[(F, snr)] = cell
                 print(f"F={F} {snr:g} dB done, {time.perf_counter() - start:.0f} s",
                       flush=True)
