@@ -1,0 +1,115 @@
+"""Fit time of a long noise-free record against the same record with noise.
+
+Noise-free local dynamics need fewer poles than ``den_degree``: the
+denominator block of every window is rank-deficient, the compiled kernel's
+pivot check fails and the window goes to the dense numpy route, for the solve
+(:func:`lrmfrf.solvers.solve_local_least_squares`, the QR fallback) and for
+the errors-in-variables terms (:func:`lrmfrf.uncertainty._terms_of_chunk`).
+This prints, per case (noise-free / 60 dB, ``std_method`` default "eiv" and
+"lemma2"), the wall time of each ``LRMBeyondNyquist().fit`` (after one
+warm-up fit), and how many windows went dense in the solve and in the eiv
+terms, with the time spent in each.
+
+``--ab`` also alternates, on the noise-free default fit, the current
+``_pseudo_inverse_gram`` with its former three-operand einsum (``old``)
+and prints the ratio of the medians.
+
+Run:  python benchmarks/noise_free_speed.py [--n-samples 120000] [--repeats 3] [--ab]
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import time
+
+import numpy as np
+
+import lrmfrf.solvers as solvers
+import lrmfrf.uncertainty as uncertainty
+from lrmfrf import LRMBeyondNyquist
+from lrmfrf.paper import paper_experiment
+from lrmfrf.plants import wafer_stage
+
+COUNTS: dict = {}
+
+
+def _counted(module, name, n_windows):
+    function = getattr(module, name)
+
+    @functools.wraps(function)
+    def counted(*args, **kwargs):
+        start = time.perf_counter()
+        result = function(*args, **kwargs)
+        entry = COUNTS.setdefault(name, [0, 0.0])
+        entry[0] += n_windows(args)
+        entry[1] += time.perf_counter() - start
+        return result
+
+    setattr(module, name, counted)
+
+
+# the solve's dense windows (A of shape (B, L, p)) and the eiv terms' (the
+# slow bins of the chunk)
+_counted(solvers, "solve_local_least_squares", lambda args: args[0].shape[0])
+_counted(uncertainty, "_terms_of_chunk", lambda args: len(args[4]))
+
+NEW_PINV = uncertainty._pseudo_inverse_gram
+
+
+def old_pinv(A_eq):
+    """``_pseudo_inverse_gram`` before the matmul (the einsum of the three
+    operands)."""
+    _, s, Vh = np.linalg.svd(A_eq, full_matrices=False)
+    keep = s > uncertainty.RANK_TOL * s[:, :1]
+    inv_s2 = np.where(keep, 1.0 / np.where(keep, s, 1.0) ** 2, 0.0)
+    return np.einsum("bki,bk,bkj->bij", Vh.conj(), inv_s2, Vh)
+
+
+def timed_fit(u, y, method):
+    COUNTS.clear()
+    start = time.perf_counter()
+    LRMBeyondNyquist(std_method=method).fit(u, y, 3)
+    return time.perf_counter() - start, {k: list(v) for k, v in COUNTS.items()}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--n-samples", type=int, default=120_000)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--ab", action="store_true")
+    args = parser.parse_args()
+    plant = wafer_stage().G_y4
+    print(f"N = {args.n_samples}, wafer_stage().G_y4, F = 3, rng = 0, "
+          f"repeats {args.repeats} (after one warm-up fit)", flush=True)
+    for snr in (None, 60.0):
+        e = paper_experiment(plant, rng=0, n_samples=args.n_samples, snr_db=snr)
+        for method in ("eiv", "lemma2"):
+            timed_fit(e.u_h, e.y_l, method)  # warm-up (numba, caches)
+            runs = [timed_fit(e.u_h, e.y_l, method) for _ in range(args.repeats)]
+            times = [t for t, _ in runs]
+            counts = runs[-1][1]
+            solve = counts.get("solve_local_least_squares", [0, 0.0])
+            terms = counts.get("_terms_of_chunk", [0, 0.0])
+            label = "noise-free" if snr is None else f"{snr:g} dB"
+            print(f"{label:10s} {method:6s}: median {np.median(times):7.3f} s "
+                  f"(all {np.round(times, 3)}); dense windows: solve "
+                  f"{solve[0]} ({solve[1]:.2f} s), eiv terms {terms[0]} "
+                  f"({terms[1]:.2f} s)", flush=True)
+    if args.ab:
+        e = paper_experiment(plant, rng=0, n_samples=args.n_samples, snr_db=None)
+        times = {"old": [], "new": []}
+        for _ in range(args.repeats):
+            for name, pinv in (("old", old_pinv), ("new", NEW_PINV)):
+                uncertainty._pseudo_inverse_gram = pinv
+                times[name].append(timed_fit(e.u_h, e.y_l, "eiv")[0])
+        uncertainty._pseudo_inverse_gram = NEW_PINV
+        a, b = np.median(times["old"]), np.median(times["new"])
+        print(f"A/B noise-free eiv, alternated: old einsum pinv {a:.3f} s, "
+              f"new matmul pinv {b:.3f} s, new/old {b / a:.2f}; all "
+              f"{np.round(times['old'], 3)} / {np.round(times['new'], 3)}",
+              flush=True)
+
+
+if __name__ == "__main__":
+    main()
