@@ -1694,13 +1694,16 @@ def experiment_noise_weights(spectra, layout: LocalModelLayout, *,
     if problem is not None:
         siso = layout.n_inputs == 1 and spectra.outputs.shape[1] == 1
         where = "" if siso else f" in output row(s) {problem[0]}"
-        per_row = "" if siso else " per output row"
+        # only the rows named are pooled; the other flagged rows keep weights
+        fitted = ("fitted" if siso else
+                  "that row is fitted" if len(problem[0]) == 1 else
+                  "those rows are fitted")
         warnings.warn(
             f"The experiments' residual levels{where} "
             f"differ in a way noise alone does not explain ({problem[1]}; "
             "model misfit that differs between the experiments, e.g. one "
-            "with an input missing?): fitted with one pooled noise level"
-            f"{per_row}, as for equal noise. Raise the local degrees "
+            f"with an input missing?): {fitted} with one pooled noise level, "
+            "as for equal noise. Raise the local degrees "
             "or half_window, or check the experiments.",
             UserWarning,
             stacklevel=stacklevel,

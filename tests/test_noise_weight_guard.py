@@ -148,6 +148,9 @@ def test_fit_warns_once_at_its_caller_and_the_row_at_the_bound_is_unweighted(
     assert len(ours) == 1
     assert ours[0].filename == __file__
     assert "output row(s) [1]" in str(ours[0].message)
+    # only row 1 is pooled: the message must not read as if every row were
+    assert "that row is fitted with one pooled noise level" in str(ours[0].message)
+    assert "per output row" not in str(ours[0].message)
     assert np.all(est.noise_weights_[:, :2] == 1.0)
     assert np.ptp(est.noise_weights_[:, 2]) > 0.05
     weights, _ = weights_of(3, THREE)
