@@ -82,8 +82,16 @@ route), on the same fits:
     sandwich (``eiv_true`` of ``generalisation_std.py``; ``true+nbr_c4`` with
     the neighbour term).
 ``MC``
-    The Monte-Carlo std itself (the spread around the MC mean): the best a
-    per-bin std can do.
+    The Monte-Carlo std itself (the spread around the MC mean). Oracle
+    diagnostics, not routes: ``MC*1.05`` that std times 1.05 (the largest
+    std of the spread's shape the ratio target allows) and ``MC+bias`` the
+    MC variance plus each bin's squared bias (``|MC mean - truth|^2`` less
+    its sampling part ``mc^2 / n_runs``). On the held-out seeds (2000-2009
+    and the wafer stage) ``MC*1.05`` covers 92.0-97.5 % (below 96.2 % in
+    the three 70 dB cells: 95.4, 95.0, 92.0 %), while ``MC+bias`` covers
+    98.4-98.6 % at a median ratio of 1.005-1.015 in every cell: the two
+    targets do not conflict, a std that adds each bin's bias where there is
+    one meets both. What a one-record route lacks is that bias.
 
 Systems: random stages (``random_stage(seed, downsampling_factor=F)``,
 closed loop, ``G_y4`` and ``G_z`` in turn, as ``stage_systems(...,
@@ -392,6 +400,16 @@ def evaluate(data):
     bins[0] = False
     error = np.abs(G[:, bins] - truth[bins])
     out = {"MC": (1.0, float(np.mean(error <= 2 * mc[bins])))}
+    # oracle diagnostics (truth and Monte Carlo, not routes): the MC std
+    # times 1.05, the most a std of the spread's shape may be, and the MC
+    # std with each bin's own squared bias added (the MC mean's error less
+    # its sampling variance mc^2 / n_runs)
+    out["MC*1.05"] = (1.05, float(np.mean(error <= 2.1 * mc[bins])))
+    bias2 = np.maximum(np.abs(mean[bins] - truth[bins]) ** 2
+                       - mc[bins] ** 2 / n_runs, 0.0)
+    rmse = np.sqrt(mc[bins] ** 2 + bias2)
+    out["MC+bias"] = (float(np.median(rmse / mc[bins])),
+                      float(np.mean(error <= 2 * rmse)))
     for name, var in route_variances(data, bins).items():
         var = var[:, bins]
         ratio = float(np.median(np.sqrt(np.nanmean(var, axis=0)) / mc[bins]))
