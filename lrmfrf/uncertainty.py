@@ -403,11 +403,19 @@ def _row_weights(weights, n_y: int, P: int) -> list:
     checked = []
     for o, w in enumerate(weights):
         if w is not None:
-            w = np.asarray(w, dtype=float)
-            if w.shape != (P,) or not np.all(np.isfinite(w) & (w > 0)):
+            try:  # (ragged or non-numeric entries: the message below)
+                given = np.asarray(w)
+            except ValueError:
+                given = np.asarray(w, dtype=object)
+            # real numbers only: a complex weight cast to float would lose its
+            # imaginary part with no more than a ComplexWarning
+            real = given.dtype.kind in "iuf"
+            w = given.astype(float) if real else given
+            if (not real or w.shape != (P,)
+                    or not np.all(np.isfinite(w) & (w > 0))):
                 raise ValueError(
                     f"`weights[{o}]` must be None or {P} finite positive "
-                    f"experiment weights, shape ({P},); got {w!r}."
+                    f"(real) experiment weights, shape ({P},); got {given!r}."
                 )
         checked.append(w)
     return checked
