@@ -1706,16 +1706,22 @@ def experiment_noise_weights(spectra, layout: LocalModelLayout, *,
         fitted = ("fitted" if siso else
                   "that row is fitted" if len(problem[0]) == 1 else
                   "those rows are fitted")
-        warnings.warn(
-            f"The experiments' residual levels{where} "
-            f"differ in a way noise alone does not explain ({problem[1]}; "
-            "model misfit that differs between the experiments, e.g. one "
-            f"with an input missing?): {fitted} with one pooled noise level, "
-            "as for equal noise. Raise the local degrees "
-            "or half_window, or check the experiments.",
-            UserWarning,
-            stacklevel=stacklevel,
-        )
+        if layout.dof < MIN_NOISE_LEVEL_DOF * layout.n_experiments:
+            # too few residual dof: not misfit, and higher local degrees
+            # would take dof away
+            text = (f"The experiments' residual levels{where} differ, but "
+                    f"with {problem[1]}, they are no noise estimate: {fitted} "
+                    "with one pooled noise level, as for equal noise. Raise "
+                    "half_window or lower the local degrees to weight the "
+                    "experiments.")
+        else:
+            text = (f"The experiments' residual levels{where} "
+                    f"differ in a way noise alone does not explain ({problem[1]}; "
+                    "model misfit that differs between the experiments, e.g. one "
+                    f"with an input missing?): {fitted} with one pooled noise "
+                    "level, as for equal noise. Raise the local degrees "
+                    "or half_window, or check the experiments.")
+        warnings.warn(text, UserWarning, stacklevel=stacklevel)
     return weights
 
 
