@@ -16,9 +16,10 @@ printed backend says which.
 
 ``--ab`` also alternates, on the noise-free default fit, the current
 ``_pseudo_inverse_gram`` with its former three-operand einsum (``old``)
-and prints the ratio of the medians.
+and prints the ratio of the medians. ``--std`` only prints the noise-free
+default fit's ``frf_std_ / |frf_|`` over the bins (its size: round-off).
 
-Run:  python benchmarks/noise_free_speed.py [--n-samples 120000] [--repeats 3] [--ab]
+Run:  python benchmarks/noise_free_speed.py [--n-samples 120000] [--repeats 3] [--ab] [--std]
 """
 
 from __future__ import annotations
@@ -83,13 +84,34 @@ def timed_fit(u, y, method):
     return elapsed, {k: list(v) for k, v in COUNTS.items()}, backend
 
 
+def print_relative_std(plant, n_samples: int) -> None:
+    """``frf_std_ / |frf_|`` of the default (eiv) fit of the noise-free
+    record: the size of the std on noise-free data."""
+    e = paper_experiment(plant, rng=0, n_samples=n_samples, snr_db=None)
+    est = LRMBeyondNyquist().fit(e.u_h, e.y_l, 3)
+    G, std = np.ravel(est.frf_), np.ravel(est.frf_std_)
+    r = std / np.abs(G)
+    top = int(np.argmax(r))
+    print(f"N = {n_samples}, wafer_stage().G_y4, F = 3, rng = 0, noise-free, "
+          f"default fit: frf_std_ / |frf_| over {r.size} bins: median "
+          f"{np.median(r):.1e}, 95 % {np.percentile(r, 95):.1e}, 99 % "
+          f"{np.percentile(r, 99):.1e}, largest {r[top]:.1e} at bin {top} "
+          f"(|frf_| {abs(G[top]):.1e}, frf_std_ {std[top]:.1e}); the next "
+          f"largest {np.sort(r)[-2]:.1e}", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n-samples", type=int, default=120_000)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--ab", action="store_true")
+    parser.add_argument("--std", action="store_true",
+                        help="only frf_std_ / |frf_| of the noise-free fit")
     args = parser.parse_args()
     plant = wafer_stage().G_y4
+    if args.std:
+        print_relative_std(plant, args.n_samples)
+        return
     print(f"N = {args.n_samples}, wafer_stage().G_y4, F = 3, rng = 0, "
           f"repeats {args.repeats} (after one warm-up fit)", flush=True)
     for snr in (None, 60.0):
