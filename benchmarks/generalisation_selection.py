@@ -392,7 +392,8 @@ def selection_table(seeds, *, criteria=CRITERIA, n_jobs: int = 1,
         ``rows`` (one per record: label, F, snr, oracle setting and error, the
         ratio of each criterion), ``summary`` (per criterion and ``fixed``:
         mean and worst ratio, and the worst stage's mean ratio per seed and
-        per seed and loop, :func:`worst_stage_mean`), ``fixed`` (the best single setting).
+        per seed and loop, :func:`worst_stage_mean`), ``fixed`` (the best
+        single setting).
     """
     if records is None:
         systems = mimo_stage_systems if mimo else stage_systems

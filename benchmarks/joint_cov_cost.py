@@ -9,11 +9,11 @@ orthogonal multisine experiments, 1 % output noise), at M = 400 and M =
 40000 slow samples; ``--weighted`` makes experiment 1 five times noisier,
 so the rows are fitted with noise weights (``noise_weights_``; every row at
 M = 400 and 40000, the count is printed: at M = 200 one row is not
-flagged) and the covariance weighs their equations window by window. Per repeat the fit and
-then the covariance of that fit are timed (wall clock, one process, after a
-warm-up fit that compiles the kernel); the ratio is per repeat, so a loaded
-machine shifts both alike. ``--memory`` also reports the tracemalloc peak of
-the covariance on a fresh fit (slower: tracing).
+flagged) and the covariance weighs their equations window by window. Per
+repeat the fit and then the covariance of that fit are timed (wall clock,
+one process, after a warm-up fit that compiles the kernel); the ratio is per
+repeat, so a loaded machine shifts both alike. ``--memory`` also reports
+the tracemalloc peak of the covariance on a fresh fit (slower: tracing).
 
 Run::
 

@@ -19,7 +19,10 @@ printed backend says which.
 and prints the ratio of the medians. ``--std`` only prints the noise-free
 default fit's ``frf_std_ / |frf_|`` over the bins (its size: round-off).
 
-Run:  python benchmarks/noise_free_speed.py [--n-samples 120000] [--repeats 3] [--ab] [--std]
+Run::
+
+    python benchmarks/noise_free_speed.py [--n-samples 120000] [--repeats 3]
+        [--ab] [--std]
 """
 
 from __future__ import annotations
