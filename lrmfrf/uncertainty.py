@@ -411,6 +411,11 @@ def _row_weights(weights, n_y: int, P: int) -> list:
             # imaginary part with no more than a ComplexWarning
             real = given.dtype.kind in "iuf"
             w = given.astype(float) if real else given
+            if given.dtype.kind == "O":  # e.g. Fraction or Decimal entries
+                try:
+                    w, real = given.astype(float), True
+                except (TypeError, ValueError):  # complex, ragged
+                    pass
             if (not real or w.shape != (P,)
                     or not np.all(np.isfinite(w) & (w > 0))):
                 raise ValueError(
