@@ -392,7 +392,8 @@ def selection_table(seeds, *, criteria=CRITERIA, n_jobs: int = 1,
         ``rows`` (one per record: label, F, snr, oracle setting and error, the
         ratio of each criterion), ``summary`` (per criterion and ``fixed``:
         mean and worst ratio, and the worst stage's mean ratio per seed and
-        per seed and loop, :func:`worst_stage_mean`), ``fixed`` (the best single setting).
+        per seed and loop, :func:`worst_stage_mean`), ``fixed`` (the best
+        single setting).
     """
     if records is None:
         systems = mimo_stage_systems if mimo else stage_systems
@@ -530,11 +531,11 @@ def main(argv=None) -> int:
     print(f"{len(rows)} {kind} ({args.seeds}{' + wafer' if args.wafer else ''}); "
           f"M = {SLOW_SAMPLES}, SNR {SNR_RANGE[0]:g}-{SNR_RANGE[1]:g} dB; "
           "ratio = pick error / oracle error (median rel. error, valid bins)")
-    print(f"{'criterion':14s}{'mean':>8s}{'worst':>8s}  worst stage (mean of "
+    print(f"{'criterion':22s}{'mean':>8s}{'worst':>8s}  worst stage (mean of "
           "its records): per seed, per seed and loop")
     for name, (mean, worst, stage, loop) in table["summary"].items():
         label = f"fixed {table['fixed']}" if name == "fixed" else name
-        print(f"{label:14s}{mean:8.3f}{worst:8.3f}{stage:8.3f}{loop:8.3f}")
+        print(f"{label:22s}{mean:8.3f}{worst:8.3f}{stage:8.3f}{loop:8.3f}")
     if args.csv:
         with open(args.csv, "w", newline="") as fh:
             writer = csv.DictWriter(fh, fieldnames=list(rows[0]))

@@ -8,13 +8,21 @@ the errors-in-variables terms (:func:`lrmfrf.uncertainty._terms_of_chunk`).
 This prints, per case (noise-free / 60 dB, ``std_method`` default "eiv" and
 "lemma2"), the wall time of each ``LRMBeyondNyquist().fit`` (after one
 warm-up fit), and how many windows went dense in the solve and in the eiv
-terms, with the time spent in each.
+terms, with the time spent in each. The eiv count is of the windows whose
+terms are computed in numpy: on the compiled backend (the default N) those
+that fail its pivot check, but on the numpy backend (small N, e.g.
+``--n-samples 6000``, or ``LRMFRF_DISABLE_NUMBA=1``) every window; the
+printed backend says which.
 
 ``--ab`` also alternates, on the noise-free default fit, the current
 ``_pseudo_inverse_gram`` with its former three-operand einsum (``old``)
-and prints the ratio of the medians.
+and prints the ratio of the medians. ``--std`` only prints the noise-free
+default fit's ``frf_std_ / |frf_|`` over the bins (its size: round-off).
 
-Run:  python benchmarks/noise_free_speed.py [--n-samples 120000] [--repeats 3] [--ab]
+Run::
+
+    python benchmarks/noise_free_speed.py [--n-samples 120000] [--repeats 3]
+        [--ab] [--std]
 """
 
 from __future__ import annotations
@@ -67,10 +75,32 @@ def old_pinv(A_eq):
 
 
 def timed_fit(u, y, method):
+    """Wall time of one fit, the counts of :data:`COUNTS`, and the backend
+    its eiv terms take (``"auto"`` as the fit resolves it: the slow
+    windows and the layout's size)."""
     COUNTS.clear()
     start = time.perf_counter()
-    LRMBeyondNyquist(std_method=method).fit(u, y, 3)
-    return time.perf_counter() - start, {k: list(v) for k, v in COUNTS.items()}
+    est = LRMBeyondNyquist(std_method=method).fit(u, y, 3)
+    elapsed = time.perf_counter() - start
+    backend = solvers.resolve_backend("auto", y.shape[-1] // 2 + 1,
+                                      est.layout_.n_params, eiv=True)
+    return elapsed, {k: list(v) for k, v in COUNTS.items()}, backend
+
+
+def print_relative_std(plant, n_samples: int) -> None:
+    """``frf_std_ / |frf_|`` of the default (eiv) fit of the noise-free
+    record: the size of the std on noise-free data."""
+    e = paper_experiment(plant, rng=0, n_samples=n_samples, snr_db=None)
+    est = LRMBeyondNyquist().fit(e.u_h, e.y_l, 3)
+    G, std = np.ravel(est.frf_), np.ravel(est.frf_std_)
+    r = std / np.abs(G)
+    top = int(np.argmax(r))
+    print(f"N = {n_samples}, wafer_stage().G_y4, F = 3, rng = 0, noise-free, "
+          f"default fit: frf_std_ / |frf_| over {r.size} bins: median "
+          f"{np.median(r):.1e}, 95 % {np.percentile(r, 95):.1e}, 99 % "
+          f"{np.percentile(r, 99):.1e}, largest {r[top]:.1e} at bin {top} "
+          f"(|frf_| {abs(G[top]):.1e}, frf_std_ {std[top]:.1e}); the next "
+          f"largest {np.sort(r)[-2]:.1e}", flush=True)
 
 
 def main() -> None:
@@ -78,8 +108,13 @@ def main() -> None:
     parser.add_argument("--n-samples", type=int, default=120_000)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--ab", action="store_true")
+    parser.add_argument("--std", action="store_true",
+                        help="only frf_std_ / |frf_| of the noise-free fit")
     args = parser.parse_args()
     plant = wafer_stage().G_y4
+    if args.std:
+        print_relative_std(plant, args.n_samples)
+        return
     print(f"N = {args.n_samples}, wafer_stage().G_y4, F = 3, rng = 0, "
           f"repeats {args.repeats} (after one warm-up fit)", flush=True)
     for snr in (None, 60.0):
@@ -87,15 +122,16 @@ def main() -> None:
         for method in ("eiv", "lemma2"):
             timed_fit(e.u_h, e.y_l, method)  # warm-up (numba, caches)
             runs = [timed_fit(e.u_h, e.y_l, method) for _ in range(args.repeats)]
-            times = [t for t, _ in runs]
-            counts = runs[-1][1]
+            times = [t for t, _, _ in runs]
+            counts, backend = runs[-1][1], runs[-1][2]
             solve = counts.get("solve_local_least_squares", [0, 0.0])
             terms = counts.get("_terms_of_chunk", [0, 0.0])
             label = "noise-free" if snr is None else f"{snr:g} dB"
+            where = "dense" if backend == "numba" else "numpy backend: all"
             print(f"{label:10s} {method:6s}: median {np.median(times):7.3f} s "
                   f"(all {np.round(times, 3)}); dense windows: solve "
-                  f"{solve[0]} ({solve[1]:.2f} s), eiv terms {terms[0]} "
-                  f"({terms[1]:.2f} s)", flush=True)
+                  f"{solve[0]} ({solve[1]:.2f} s), eiv terms ({where}) "
+                  f"{terms[0]} ({terms[1]:.2f} s)", flush=True)
     if args.ab:
         e = paper_experiment(plant, rng=0, n_samples=args.n_samples, snr_db=None)
         times = {"old": [], "new": []}

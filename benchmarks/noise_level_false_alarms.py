@@ -2,8 +2,8 @@
 
 :func:`lrmfrf.uncertainty._noise_weights` (what ``experiment_noise_weights``
 and the fit use) on records with equal noise on every experiment (false
-alarm: a row weighted, or the "differ in a way noise alone does not
-explain" warning) and with experiment 1's noise std 2x and 4x that of the
+alarm: a row weighted, or the warning that a flagged row is fitted with
+one pooled noise level) and with experiment 1's noise std 2x and 4x that of the
 others (detection: weighted).
 
 Systems (``lrmfrf.plants.random_stage``, ``F`` its drawn

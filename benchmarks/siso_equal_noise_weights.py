@@ -69,7 +69,8 @@ def fit(est, u, y, F):
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         est.fit(u, y, F)
-    pooled = [w for w in caught if "noise alone does not explain" in str(w.message)]
+    # the pooled-fit warning of experiment_noise_weights (any of its reasons)
+    pooled = [w for w in caught if "pooled noise level" in str(w.message)]
     return est, bool(pooled)
 
 

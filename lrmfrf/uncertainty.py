@@ -403,11 +403,24 @@ def _row_weights(weights, n_y: int, P: int) -> list:
     checked = []
     for o, w in enumerate(weights):
         if w is not None:
-            w = np.asarray(w, dtype=float)
-            if w.shape != (P,) or not np.all(np.isfinite(w) & (w > 0)):
+            try:  # (ragged or non-numeric entries: the message below)
+                given = np.asarray(w)
+            except ValueError:
+                given = np.asarray(w, dtype=object)
+            # real numbers only: a complex weight cast to float would lose its
+            # imaginary part with no more than a ComplexWarning
+            real = given.dtype.kind in "iuf"
+            w = given.astype(float) if real else given
+            if given.dtype.kind == "O":  # e.g. Fraction or Decimal entries
+                try:
+                    w, real = given.astype(float), True
+                except (TypeError, ValueError):  # complex, ragged
+                    pass
+            if (not real or w.shape != (P,)
+                    or not np.all(np.isfinite(w) & (w > 0))):
                 raise ValueError(
                     f"`weights[{o}]` must be None or {P} finite positive "
-                    f"experiment weights, shape ({P},); got {w!r}."
+                    f"(real) experiment weights, shape ({P},); got {given!r}."
                 )
         checked.append(w)
     return checked
@@ -1698,16 +1711,22 @@ def experiment_noise_weights(spectra, layout: LocalModelLayout, *,
         fitted = ("fitted" if siso else
                   "that row is fitted" if len(problem[0]) == 1 else
                   "those rows are fitted")
-        warnings.warn(
-            f"The experiments' residual levels{where} "
-            f"differ in a way noise alone does not explain ({problem[1]}; "
-            "model misfit that differs between the experiments, e.g. one "
-            f"with an input missing?): {fitted} with one pooled noise level, "
-            "as for equal noise. Raise the local degrees "
-            "or half_window, or check the experiments.",
-            UserWarning,
-            stacklevel=stacklevel,
-        )
+        if layout.dof < MIN_NOISE_LEVEL_DOF * layout.n_experiments:
+            # too few residual dof: not misfit, and higher local degrees
+            # would take dof away
+            text = (f"The experiments' residual levels{where} differ, but "
+                    f"with {problem[1]}, they are no noise estimate: {fitted} "
+                    "with one pooled noise level, as for equal noise. Raise "
+                    "half_window or lower the local degrees to weight the "
+                    "experiments.")
+        else:
+            text = (f"The experiments' residual levels{where} "
+                    f"differ in a way noise alone does not explain ({problem[1]}; "
+                    "model misfit that differs between the experiments, e.g. one "
+                    f"with an input missing?): {fitted} with one pooled noise "
+                    "level, as for equal noise. Raise the local degrees "
+                    "or half_window, or check the experiments.")
+        warnings.warn(text, UserWarning, stacklevel=stacklevel)
     return weights
 
 

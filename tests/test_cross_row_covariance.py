@@ -258,3 +258,21 @@ def test_weights_are_one_entry_per_row():
     np.testing.assert_array_equal(
         listed, cross_row_covariance(U, Ys, layout, thetas, bins,
                                      weights=[W[:, 0], None]))
+
+
+def test_complex_or_ragged_weights_are_refused():
+    """A complex weight was cast to float with only a ComplexWarning (its
+    imaginary part dropped, the row weighted by the real part, no error); a
+    ragged entry failed in numpy's conversion. Both now get the message that
+    says what to pass."""
+    import warnings
+
+    from lrmfrf.uncertainty import cross_row_covariance
+
+    layout, U, Ys, thetas, bins = _random_windows()
+    for bad in ([np.array([1.0, 0.3 + 0.5j]), None], [[1.0, [0.3]], None],
+                [np.array([True, True]), None]):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # (the old ComplexWarning)
+            with pytest.raises(ValueError, match=r"weights\[0\]` must be None or 2"):
+                cross_row_covariance(U, Ys, layout, thetas, bins, weights=bad)

@@ -132,6 +132,12 @@ def test_one_residual_dof_is_not_weighted(seed, monkeypatch):
     messages = [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
     assert len(messages) == 1
     assert "degrees of freedom" in messages[0]
+    # too few dof is no misfit, and higher local degrees would take dof away:
+    # the advice used to be the misfit one ("Raise the local degrees")
+    assert "no noise estimate" in messages[0]
+    assert "lower the local degrees" in messages[0]
+    assert "Raise the local degrees" not in messages[0]
+    assert "misfit" not in messages[0]
 
 
 def test_fit_warns_once_at_its_caller_and_the_row_at_the_bound_is_unweighted(

@@ -340,3 +340,25 @@ def test_per_bin_choice_leaves_out_candidates_with_one_residual_dof(record):
     assert not set(thin) & set(pmse.band_index_.tolist())
     np.testing.assert_array_equal(pmse.band_index_, gaic.band_index_)
     np.testing.assert_array_equal(pmse.frf_, gaic.frf_)
+
+
+def test_worst_stage_mean_groups_by_seed_or_by_seed_and_loop():
+    """``benchmarks/generalisation_selection.worst_stage_mean`` (the selection
+    benchmarks' "worst stage"): ``parts=1`` averages a seed's four records
+    (and the wafer's two), ``parts=2`` a seed's closed- or open-loop pair."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from generalisation_selection import worst_stage_mean
+
+    ratios = {"1000/closed/G_y4": 1.6, "1000/closed/G_z": 1.0,
+              "1000/open/G_y4": 1.0, "1000/open/G_z": 1.0,
+              "1001/closed/G_y4": 1.2, "1001/closed/G_z": 1.2,
+              "1001/open/G_y4": 1.2, "1001/open/G_z": 1.0,
+              "wafer/closed/G_y4": 1.1, "wafer/closed/G_z": 1.3}
+    rows = [{"label": label, "pmse": x} for label, x in ratios.items()]
+    # seeds: 1000 -> 1.15, 1001 -> 1.15, wafer -> 1.2
+    assert worst_stage_mean(rows, "pmse") == pytest.approx(1.2, abs=1e-12)
+    # seed and loop: 1000/closed -> 1.3 (the largest), 1001/closed 1.2
+    assert worst_stage_mean(rows, "pmse", parts=2) == pytest.approx(1.3, abs=1e-12)

@@ -206,9 +206,12 @@ def test_refused_siso_weights_warn_without_output_rows(system, monkeypatch):
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             est = LRMBeyondNyquist(**kwargs).fit(list(u), list(y), F)
-        pooled = [w for w in caught if "noise alone does not explain" in str(w.message)]
+        pooled = [w for w in caught if "pooled noise level" in str(w.message)]
         assert len(pooled) == int(flag_all), [str(w.message) for w in caught]
         if flag_all:
             assert "output row" not in str(pooled[0].message)
             assert "degrees of freedom" in str(pooled[0].message)
+            # too few dof, not misfit: the advice is the one that adds dof
+            assert "no noise estimate: fitted with" in str(pooled[0].message)
+            assert "lower the local degrees" in str(pooled[0].message)
         np.testing.assert_array_equal(est.noise_weights_, np.ones(2))
