@@ -2,9 +2,12 @@
 
 Noise-free local dynamics need fewer poles than ``den_degree``: the
 denominator block of every window is rank-deficient, the compiled kernel's
-pivot check fails and the window goes to the dense numpy route, for the solve
-(:func:`lrmfrf.solvers.solve_local_least_squares`, the QR fallback) and for
-the errors-in-variables terms (:func:`lrmfrf.uncertainty._terms_of_chunk`).
+pivot check fails and the window goes to the dense numpy route: the solve
+(:func:`lrmfrf.solvers._solve_dense`, the QR fallback), which since stop38
+also computes the errors-in-variables terms of its well-posed windows from
+its own factors; the separate dense route of the terms
+(:func:`lrmfrf.uncertainty._terms_of_chunk`) is then only taken by windows
+left without them.
 This prints, per case (noise-free / 60 dB, ``std_method`` default "eiv" and
 "lemma2"), the wall time of each ``LRMBeyondNyquist().fit`` (after one
 warm-up fit), and how many windows went dense in the solve and in the eiv
@@ -51,7 +54,7 @@ def _counted(module, name, n_windows):
 
 # the solve's dense windows (A of shape (B, L, p)) and the eiv terms' (the
 # slow bins of the chunk)
-_counted(solvers, "solve_local_least_squares", lambda args: args[0].shape[0])
+_counted(solvers, "_solve_dense", lambda args: args[0].shape[0])
 _counted(uncertainty, "_terms_of_chunk", lambda args: len(args[4]))
 
 NEW_PINV = uncertainty._pseudo_inverse_gram
@@ -89,7 +92,7 @@ def main() -> None:
             runs = [timed_fit(e.u_h, e.y_l, method) for _ in range(args.repeats)]
             times = [t for t, _ in runs]
             counts = runs[-1][1]
-            solve = counts.get("solve_local_least_squares", [0, 0.0])
+            solve = counts.get("_solve_dense", [0, 0.0])
             terms = counts.get("_terms_of_chunk", [0, 0.0])
             label = "noise-free" if snr is None else f"{snr:g} dB"
             print(f"{label:10s} {method:6s}: median {np.median(times):7.3f} s "

@@ -527,6 +527,79 @@ def _pseudo_inverse_gram(A_eq: np.ndarray) -> np.ndarray:
     return V_scaled @ Vh
 
 
+def _dense_eiv_terms(theta, A_eq, norms, zero_column, well_posed, deficient, Q,
+                     R_inv, gram_inv_eq, svd, layout):
+    """The errors-in-variables terms of windows solved by the QR solver, from
+    its factors (:func:`lrmfrf.solvers._solve_dense`): the terms of
+    :func:`_terms_of_chunk` up to round-off, without building and factoring
+    the windows again.
+
+    ``S = A_eq (A_eq^H A_eq)^+`` (its band columns over ``norms``) and the
+    leverages ``h_r`` take :func:`_window_solution`'s truncated
+    pseudo-inverse (singular values below ``RANK_TOL`` times the largest
+    dropped) wherever it drops one; where none is dropped the pseudo-inverse is
+    the inverse, which that function's normal equations give up to round-off:
+
+    - windows solved by the truncated SVD (``deficient``; ``svd = (U, s, Vh)``
+      of ``A_eq[deficient]``) and well-posed windows whose ``R`` does not
+      certify full rank: ``A_eq (A_eq^H A_eq)^+ = U diag(1/s) Vh`` over the
+      kept singular values, ``h_r = sum_k |U_rk|^2`` over them;
+    - windows certified full rank, ``||R^-1||_F^2 RANK_TOL^2 p < 1/4`` (then
+      ``s_min >= 1 / ||R^-1||_F > 2 RANK_TOL sqrt(p) >= 2 RANK_TOL s_max``,
+      the columns having unit norm): ``A_eq (A_eq^H A_eq)^-1 = Q R^-H``,
+      ``h_r = sum_k |Q_rk|^2``.
+
+    Returns
+    -------
+    tuple
+        ``(lead, hw_trace, w_sum, w_min, w_max, done)`` as
+        :func:`lrmfrf._compiled_uncertainty.eiv_windows` (NaN where not
+        ``done``, the well-posed windows): ``S^H diag(w) S``, ``sum_r w_r
+        h_r`` and the sum, minimum and maximum of ``w = |e(x_r)|^2``.
+    """
+    B, L, p = A_eq.shape
+    nb = layout.n_bands
+    lead = np.full((B, nb, nb), np.nan, dtype=complex)
+    hw_trace, w_sum, w_min, w_max = (np.full(B, np.nan) for _ in range(4))
+    certified = (well_posed & ~deficient & ~zero_column.any(axis=1)
+                 & (np.sum(gram_inv_eq, axis=1) * (RANK_TOL**2 * p) < 0.25))
+    rest = np.flatnonzero(well_posed & ~deficient & ~certified)
+    groups = []
+    if certified.any():
+        sel = np.flatnonzero(certified)
+        Q_sel = Q[sel]
+        S_eq = Q_sel @ np.ascontiguousarray(
+            np.conj(np.swapaxes(R_inv[sel, :nb, :], 1, 2)))
+        groups.append((sel, S_eq, np.sum(Q_sel.real**2 + Q_sel.imag**2, axis=2)))
+    if svd is not None:
+        groups.append((np.flatnonzero(deficient), *_svd_projection(*svd, nb)))
+    if rest.size:
+        svd_rest = np.linalg.svd(A_eq[rest], full_matrices=False)
+        groups.append((rest, *_svd_projection(*svd_rest, nb)))
+    for sel, S_eq, leverage in groups:
+        S = S_eq / norms[sel, None, :nb]
+        w = np.abs(_denominator_on_window(theta[sel], layout)) ** 2
+        w = np.tile(w, (1, layout.n_experiments))  # rows are experiment-major
+        S_h = np.ascontiguousarray(np.conj(np.swapaxes(S, 1, 2)))
+        lead[sel] = (S_h * w[:, None, :]) @ S
+        hw_trace[sel] = np.sum(w * leverage, axis=1)
+        w_sum[sel] = w.sum(axis=1)
+        w_min[sel] = w.min(axis=1)
+        w_max[sel] = w.max(axis=1)
+    return lead, hw_trace, w_sum, w_min, w_max, well_posed.copy()
+
+
+def _svd_projection(U, s, Vh, n_columns):
+    """``U diag(1/s) Vh`` at the leading ``n_columns`` columns and the
+    leverages ``sum_k |U_rk|^2``, both over the singular values above
+    ``RANK_TOL`` times the largest (:func:`_pseudo_inverse_gram`)."""
+    keep = s > RANK_TOL * s[:, :1]
+    inv_s = np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0)
+    S_eq = (U * inv_s[:, None, :]) @ np.ascontiguousarray(Vh[:, :, :n_columns])
+    leverage = np.sum((U.real**2 + U.imag**2) * keep[:, None, :], axis=2)
+    return S_eq, leverage
+
+
 def _denominator_on_window(theta: np.ndarray, layout: LocalModelLayout) -> np.ndarray:
     """``e(x_r) = 1 + sum_s e_s x_r^s`` on the window, shape (B, 2n+1)."""
     _, x = window_offsets(layout.half_window)
