@@ -192,8 +192,15 @@ def _solve_dense(
     R = np.where(well_posed[:, None, None], R, np.eye(p))
     idx = np.arange(p)
     R[:, idx, idx] = np.where(diag == 0, 1.0, R[:, idx, idx])  # zero columns
-    R_inv = np.linalg.inv(R)
-    qhb = np.einsum("bij,bi->bj", Q.conj(), b)
+    if deficient.any():  # (the truncated SVD solves those: no inverse of R)
+        R_inv = np.empty_like(R)
+        R_inv[deficient] = np.eye(p)
+        R_inv[~deficient] = np.linalg.inv(R[~deficient])
+    else:
+        R_inv = np.linalg.inv(R)
+    # Q^H b as the conjugate of Q^T conj(b) (the same products and sums,
+    # without a conjugated copy of Q)
+    qhb = np.conj(np.einsum("bij,bi->bj", Q, b.conj()))
     z = np.einsum("bij,bj->bi", R_inv, qhb)
     gram_inv_eq = np.sum(np.abs(R_inv) ** 2, axis=2)
     c = cov_columns
