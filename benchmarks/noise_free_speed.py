@@ -13,11 +13,11 @@ This prints, per case (noise-free / 60 dB, ``std_method`` default "eiv" and
 warm-up fit), and how many windows went dense in the solve and in the eiv
 terms, with the time spent in each.
 
-``--ab`` also alternates, on the noise-free default fit, the current
-``_pseudo_inverse_gram`` with its former three-operand einsum (``old``)
-and prints the ratio of the medians.
+(The ``--ab`` option of 2026-11-28, the pseudo-inverse's einsum against its
+matmul, went with that code in stop38: the dense route of the terms forms
+``A (A^H A)^+`` from the SVD's ``U`` now.)
 
-Run:  python benchmarks/noise_free_speed.py [--n-samples 120000] [--repeats 3] [--ab]
+Run:  python benchmarks/noise_free_speed.py [--n-samples 120000] [--repeats 3]
 """
 
 from __future__ import annotations
@@ -57,18 +57,6 @@ def _counted(module, name, n_windows):
 _counted(solvers, "_solve_dense", lambda args: args[0].shape[0])
 _counted(uncertainty, "_terms_of_chunk", lambda args: len(args[4]))
 
-NEW_PINV = uncertainty._pseudo_inverse_gram
-
-
-def old_pinv(A_eq):
-    """``_pseudo_inverse_gram`` before the matmul (the einsum of the three
-    operands)."""
-    _, s, Vh = np.linalg.svd(A_eq, full_matrices=False)
-    keep = s > uncertainty.RANK_TOL * s[:, :1]
-    inv_s2 = np.where(keep, 1.0 / np.where(keep, s, 1.0) ** 2, 0.0)
-    return np.einsum("bki,bk,bkj->bij", Vh.conj(), inv_s2, Vh)
-
-
 def timed_fit(u, y, method):
     COUNTS.clear()
     start = time.perf_counter()
@@ -80,7 +68,6 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n-samples", type=int, default=120_000)
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--ab", action="store_true")
     args = parser.parse_args()
     plant = wafer_stage().G_y4
     print(f"N = {args.n_samples}, wafer_stage().G_y4, F = 3, rng = 0, "
@@ -99,19 +86,6 @@ def main() -> None:
                   f"(all {np.round(times, 3)}); dense windows: solve "
                   f"{solve[0]} ({solve[1]:.2f} s), eiv terms {terms[0]} "
                   f"({terms[1]:.2f} s)", flush=True)
-    if args.ab:
-        e = paper_experiment(plant, rng=0, n_samples=args.n_samples, snr_db=None)
-        times = {"old": [], "new": []}
-        for _ in range(args.repeats):
-            for name, pinv in (("old", old_pinv), ("new", NEW_PINV)):
-                uncertainty._pseudo_inverse_gram = pinv
-                times[name].append(timed_fit(e.u_h, e.y_l, "eiv")[0])
-        uncertainty._pseudo_inverse_gram = NEW_PINV
-        a, b = np.median(times["old"]), np.median(times["new"])
-        print(f"A/B noise-free eiv, alternated: old einsum pinv {a:.3f} s, "
-              f"new matmul pinv {b:.3f} s, new/old {b / a:.2f}; all "
-              f"{np.round(times['old'], 3)} / {np.round(times['new'], 3)}",
-              flush=True)
 
 
 if __name__ == "__main__":

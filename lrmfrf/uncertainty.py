@@ -509,21 +509,32 @@ def _window_solution(A: np.ndarray, good: np.ndarray):
     with np.errstate(invalid="ignore"):
         error = np.max(np.abs(gram @ gram_inv - identity), axis=(1, 2))
     poor = good & ~(error < INVERSE_TOL)
+    AG = A_eq @ gram_inv
     if poor.any():
-        gram_inv[poor] = _pseudo_inverse_gram(A_eq[poor])
-    return A_eq, norms, gram_inv, A_eq @ gram_inv
+        U, inv_s, Vh = _truncated_svd(A_eq[poor])
+        gram_inv[poor] = _pseudo_inverse_gram(inv_s, Vh)
+        # A_eq (A_eq^H A_eq)^+ = U diag(1/s) Vh: A_eq times the pseudo-inverse
+        # multiplied round-off by 1/s^2, up to 1e11 here (on noise-free
+        # windows leverages of -500..500 whose sum should be the rank)
+        AG[poor] = (U * inv_s[:, None, :]) @ Vh
+    return A_eq, norms, gram_inv, AG
 
 
-def _pseudo_inverse_gram(A_eq: np.ndarray) -> np.ndarray:
-    """``(A^H A)^+`` from the SVD of ``A``, singular values below ``RANK_TOL``
-    times the largest dropped (as :func:`lrmfrf.solvers.solve_local_least_squares`)."""
-    _, s, Vh = np.linalg.svd(A_eq, full_matrices=False)
+def _truncated_svd(A_eq: np.ndarray):
+    """``(U, inv_s, Vh)``: the thin SVD ``A_eq = U diag(s) Vh`` with ``inv_s``
+    ``1 / s`` at the singular values above ``RANK_TOL`` times the largest and 0
+    at the others (as :func:`lrmfrf.solvers.solve_local_least_squares`)."""
+    U, s, Vh = np.linalg.svd(A_eq, full_matrices=False)
     keep = s > RANK_TOL * s[:, :1]
-    inv_s2 = np.where(keep, 1.0 / np.where(keep, s, 1.0) ** 2, 0.0)
-    # V diag(inv_s2) V^H as a stacked matmul: the three-operand einsum does
-    # not use BLAS and was ~5x slower (every window of a noise-free record
-    # with an over-parameterised denominator comes here)
-    V_scaled = np.ascontiguousarray(np.conj(np.swapaxes(Vh, 1, 2)) * inv_s2[:, None, :])
+    return U, np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0), Vh
+
+
+def _pseudo_inverse_gram(inv_s: np.ndarray, Vh: np.ndarray) -> np.ndarray:
+    """``(A^H A)^+ = V diag(inv_s^2) V^H`` from :func:`_truncated_svd` of
+    ``A``."""
+    # as a stacked matmul: the three-operand einsum does not use BLAS and was
+    # ~5x slower
+    V_scaled = np.ascontiguousarray(np.conj(np.swapaxes(Vh, 1, 2)) * inv_s[:, None, :] ** 2)
     return V_scaled @ Vh
 
 
@@ -572,10 +583,12 @@ def _dense_eiv_terms(theta, A_eq, norms, zero_column, well_posed, deficient, Q,
             np.conj(np.swapaxes(R_inv[sel, :nb, :], 1, 2)))
         groups.append((sel, S_eq, np.sum(Q_sel.real**2 + Q_sel.imag**2, axis=2)))
     if svd is not None:
-        groups.append((np.flatnonzero(deficient), *_svd_projection(*svd, nb)))
+        U, s, Vh = svd
+        keep = s > RANK_TOL * s[:, :1]
+        inv_s = np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0)
+        groups.append((np.flatnonzero(deficient), *_svd_projection(U, inv_s, Vh, nb)))
     if rest.size:
-        svd_rest = np.linalg.svd(A_eq[rest], full_matrices=False)
-        groups.append((rest, *_svd_projection(*svd_rest, nb)))
+        groups.append((rest, *_svd_projection(*_truncated_svd(A_eq[rest]), nb)))
     for sel, S_eq, leverage in groups:
         S = S_eq / norms[sel, None, :nb]
         w = np.abs(_denominator_on_window(theta[sel], layout)) ** 2
@@ -589,14 +602,12 @@ def _dense_eiv_terms(theta, A_eq, norms, zero_column, well_posed, deficient, Q,
     return lead, hw_trace, w_sum, w_min, w_max, well_posed.copy()
 
 
-def _svd_projection(U, s, Vh, n_columns):
-    """``U diag(1/s) Vh`` at the leading ``n_columns`` columns and the
-    leverages ``sum_k |U_rk|^2``, both over the singular values above
-    ``RANK_TOL`` times the largest (:func:`_pseudo_inverse_gram`)."""
-    keep = s > RANK_TOL * s[:, :1]
-    inv_s = np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0)
+def _svd_projection(U, inv_s, Vh, n_columns):
+    """``U diag(inv_s) Vh`` at the leading ``n_columns`` columns and the
+    leverages ``sum_k |U_rk|^2`` over the kept singular values (``inv_s > 0``,
+    :func:`_truncated_svd`)."""
     S_eq = (U * inv_s[:, None, :]) @ np.ascontiguousarray(Vh[:, :, :n_columns])
-    leverage = np.sum((U.real**2 + U.imag**2) * keep[:, None, :], axis=2)
+    leverage = np.sum((U.real**2 + U.imag**2) * (inv_s > 0)[:, None, :], axis=2)
     return S_eq, leverage
 
 

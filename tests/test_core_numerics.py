@@ -317,3 +317,32 @@ def test_dense_eiv_terms_match_the_pseudo_inverse_per_window():
     A_eq = A[2] / np.linalg.norm(A[2], axis=0)
     s = np.linalg.svd(A_eq, compute_uv=False)
     assert s[-1] < 0.1 * RANK_TOL * s[0] < s[-2]
+
+
+def test_dense_terms_leverages_of_noise_free_windows_are_a_projection():
+    """Noise-free windows with an over-parameterised denominator: the dense
+    route of the std terms takes the truncated SVD's pseudo-inverse (the
+    normal equations cannot invert their Gram matrix). Its hat matrix is the
+    projection on the kept singular vectors: leverages in [0, 1] summing to
+    the rank. ``A_eq`` times the pseudo-inverse of the Gram matrix multiplied
+    round-off by ``1/s^2`` and gave leverages of -174..222 here (sums off by
+    up to 1230); ``U diag(1/s) V^H`` gives 1.3e-7 (the windows the normal
+    equations do invert, to cond ~1e10), 1e-5 allowed."""
+    from lrmfrf.local_models import dft
+    from lrmfrf.paper import paper_experiment
+    from lrmfrf.plants import wafer_stage
+    from lrmfrf.uncertainty import RANK_TOL, _window_solution
+    from lrmfrf.windows import local_regressor
+
+    e = paper_experiment(wafer_stage().G_y4, rng=0, n_samples=12000, snr_db=None)
+    layout = LocalModelLayout(F=3, half_window=18, num_degree=4,
+                              transient_degree=4, den_degree=7)
+    bins = np.arange(100, 1900, 9)
+    A, _ = local_regressor(dft(e.u_h)[None], dft(e.y_l)[None], bins, layout)
+    A_eq, _, _, AG = _window_solution(A, np.ones(bins.size, dtype=bool))
+    leverage = np.sum((AG * A_eq.conj()).real, axis=2)
+    s = np.linalg.svd(A_eq, compute_uv=False)
+    rank = np.sum(s > RANK_TOL * s[:, :1], axis=1)
+    assert np.any(rank < layout.n_params)  # (the windows of the case)
+    assert leverage.min() > -1e-5 and leverage.max() < 1 + 1e-5
+    np.testing.assert_allclose(leverage.sum(axis=1), rank, rtol=0, atol=1e-5)
