@@ -97,8 +97,10 @@ class LocalSolution:
         With ``eiv=True`` of :func:`solve_local_normal_equations` (compiled
         kernel): ``(lead, hw_trace, w_sum, w_min, w_max, valid)``, the terms of
         :func:`lrmfrf._compiled_uncertainty.eiv_windows` of the closed-form
-        solution, computed with the solve; ``valid`` is False where the window
-        was re-solved by QR (its terms must be computed again).
+        solution, computed with the solve; the windows re-solved by QR carry
+        the terms of the new solution, computed by the QR solve from its
+        factors where it finds them well posed (``valid`` True), and ``valid``
+        is False at the others (their terms must be computed again).
     """
 
     theta: np.ndarray

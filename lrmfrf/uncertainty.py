@@ -1021,9 +1021,9 @@ def _eiv_terms_compiled(U, Y, layout, theta, slow_bins, raws=None, *,
 
     ``raws``: optional per-row ``eiv_raw`` of
     :class:`lrmfrf.solvers.LocalSolution` (the kernel's terms computed with
-    the solve of ``theta``; windows not ``valid`` there, i.e. re-solved by
-    QR, are computed here again); without them every window is computed
-    here. ``raw_rows``: the same terms with a leading row axis (the kernel's
+    the solve of ``theta``, and those of the QR solve of the windows it
+    re-solved and found well posed; windows not ``valid`` there are computed
+    here again); without them every window is computed here. ``raw_rows``: the same terms with a leading row axis (the kernel's
     own arrays, used and changed in place instead of stacked anew)."""
     n_rows, B = theta.shape[:2]
     good = _all_last(np.isfinite(theta))
