@@ -41,11 +41,8 @@ computed right after its solve, from the window data, moments and Cholesky
 factor of ``G`` the solve has just built and from its refined denominator,
 so the gather, the moments of ``G``, its factor and the denominator read of
 :func:`eiv_windows` are not repeated (measured about 15 % of the closed form
-with the default std, SISO and 2x2 alike). The solve's windows re-solved
-by QR (rare, but every window of a noise-free record with an
-over-parameterised denominator) get their terms from the QR solve's own
-factors (:func:`lrmfrf.uncertainty._dense_eiv_terms`); only those it leaves
-without (not well posed) go through :func:`eiv_windows` afterwards. Both give the same terms
+with the default std, SISO and 2x2 alike). Only the solve's windows re-solved
+by QR (rare) need :func:`eiv_windows` afterwards. Both give the same terms
 bit for bit (the same step functions in the same order) when both kernels
 were compiled alike. numba builds a kernel from the IR of the kernels it
 calls, and that IR is not the same when they were compiled in the same
@@ -669,7 +666,7 @@ def solve_eiv_windows(
     reading the denominator again): the same terms as :func:`eiv_windows` on
     the returned ``theta`` up to round-off, wherever ``fast`` is True (where
     it is False the caller re-solves the window, and the terms of the new
-    solution are computed with that solve or afterwards).
+    solution must be computed again).
 
     Parameters
     ----------

@@ -97,10 +97,8 @@ class LocalSolution:
         With ``eiv=True`` of :func:`solve_local_normal_equations` (compiled
         kernel): ``(lead, hw_trace, w_sum, w_min, w_max, valid)``, the terms of
         :func:`lrmfrf._compiled_uncertainty.eiv_windows` of the closed-form
-        solution, computed with the solve; the windows re-solved by QR carry
-        the terms of the new solution, computed by the QR solve from its
-        factors where it finds them well posed (``valid`` True), and ``valid``
-        is False at the others (their terms must be computed again).
+        solution, computed with the solve; ``valid`` is False where the window
+        was re-solved by QR (its terms must be computed again).
     """
 
     theta: np.ndarray
@@ -168,9 +166,9 @@ def _solve_dense(
 
     With ``eiv_layout`` (the windows' :class:`~lrmfrf.windows.LocalModelLayout`)
     ``terms`` are the errors-in-variables terms of the well-posed windows,
-    ``(lead, hw_trace, w_sum, w_min, w_max, done)`` as
-    :func:`lrmfrf._compiled_uncertainty.eiv_windows` (``done``: where they
-    are computed, the well-posed windows), from this solve's factors
+    ``(lead, trace, done)`` as :func:`lrmfrf.uncertainty._terms_of_chunk`'s
+    ``eiv_lead`` and ``eiv_trace`` (``done``: the well-posed windows, where
+    they are computed), from this solve's factors
     (:func:`lrmfrf.uncertainty._dense_eiv_terms`); else None."""
     norms = np.linalg.norm(A, axis=1)  # (B, p)
     zero_column = norms <= np.finfo(float).tiny
@@ -228,7 +226,7 @@ def _solve_dense(
 
         terms = _dense_eiv_terms(
             theta, A_eq, safe_norms, zero_column, well_posed, deficient, Q,
-            R_inv, gram_inv_eq, svd, eiv_layout,
+            R_inv, svd, eiv_layout,
         )
     gram_inv_diag = gram_inv_eq / safe_norms**2
     lead_cov = None
@@ -421,7 +419,9 @@ def _solve_normal_rows(
     for callers that want all rows at once without stacking them again:
     ``theta`` (n_rows, B, n_params), whose row ``o`` is ``solutions[o].theta``
     (the same memory, so later changes of one show in the other), and the
-    ``eiv_raw`` terms with a leading row axis (None without them)."""
+    ``eiv_raw`` terms with a leading row axis and, after them, the dense
+    terms of the windows re-solved by QR, ``(lead, trace, done)``
+    (:func:`_with_qr_fallback`; None without them)."""
     slow_bins = np.asarray(slow_bins, dtype=int)
     backend = resolve_backend(backend, slow_bins.size, layout.n_params)
     n_centre = layout.n_bands + layout.n_experiments
@@ -442,6 +442,9 @@ def _solve_normal_rows(
         )
         # the terms hold where the kernel's own solution is kept
         eiv_raw = eiv_raw + (solved[3].copy(),)
+        n_rows, B, nb = rows.shape[1], slow_bins.size, layout.n_bands
+        dense = (np.full((n_rows, B, nb, nb), np.nan, dtype=complex),
+                 np.full((n_rows, B), np.nan), np.zeros((n_rows, B), dtype=bool))
     elif backend == "numba":
         weights, col_base, tables, to_layout = _kernel_tables(layout)
         solved = _compiled.solve_windows(
@@ -461,37 +464,41 @@ def _solve_normal_rows(
             solved.append((windows.to_layout(theta), rss, centre_cov, fast))
         solved = [np.stack(parts) for parts in zip(*solved, strict=True)]
     order = _empty_windows(layout).order
-    # the windows re-solved by QR get their terms there (``eiv_raw`` changed
-    # in place: a row's entries are views of its arrays)
+    # the windows re-solved by QR get their dense terms there (``dense``
+    # changed in place: a row's entries are views of its arrays)
     solutions = [
         _with_qr_fallback(
             U, rows[:, o], slow_bins, layout, order, *(part[o] for part in solved),
             n_centre=n_centre, cov_columns=cov_columns, rank_tol=rank_tol,
             rank_columns=rank_columns,
-            eiv_row=None if eiv_raw is None else tuple(part[o] for part in eiv_raw),
+            dense_row=None if eiv_raw is None else tuple(part[o] for part in dense),
         )
         for o in range(rows.shape[1])
     ]
     if eiv_raw is not None:
         for o, solution in enumerate(solutions):
             solution.eiv_raw = tuple(part[o] for part in eiv_raw)
+        eiv_raw = eiv_raw + (dense,)
     return solutions, solved[0], eiv_raw
 
 
 def _with_qr_fallback(
     U, Y, slow_bins, layout, order, theta, rss, centre_cov, fast, *, n_centre,
-    cov_columns, rank_tol, rank_columns, eiv_row=None,
+    cov_columns, rank_tol, rank_columns, dense_row=None,
 ) -> LocalSolution:
     """The :class:`LocalSolution` of one output row from the normal equations
     (``order``: internal column order, the window-centre columns last), with
     the windows they could not solve re-solved by QR.
 
-    ``eiv_row``: the row's ``eiv_raw`` arrays ``(lead, hw_trace, w_sum, w_min,
-    w_max, valid)``, or None. The re-solved windows that are well posed get
-    their errors-in-variables terms with the solve, from its factors, written
-    in place and marked ``valid`` (every window of a noise-free record with an
-    over-parameterised denominator comes here: the dense route of the terms
-    built and factored each of them again)."""
+    ``dense_row``: None, or the row's arrays ``(lead, trace, done)`` that
+    receive, in place, the errors-in-variables terms of the dense route
+    (:func:`lrmfrf.uncertainty._terms_of_chunk`'s ``eiv_lead`` and
+    ``eiv_trace``) of the re-solved windows that are well posed, computed
+    from this solve's factors (:func:`lrmfrf.uncertainty._dense_eiv_terms`),
+    ``done`` True there. Where the kernel pass of the terms fails on such a
+    window (every window of a noise-free record with an over-parameterised
+    denominator) they stand in for the dense route, which would build and
+    factor the window again."""
     c = cov_columns
     centre_var = np.real(np.diagonal(centre_cov, axis1=1, axis2=2))
     gram_inv_diag = np.full((slow_bins.size, layout.n_params), np.nan)
@@ -507,12 +514,12 @@ def _with_qr_fallback(
         A, b = local_regressor(U, Y, slow_bins[part], layout)
         qr, terms = _solve_dense(
             A, b, rank_tol=rank_tol, rank_columns=rank_columns, cov_columns=c,
-            eiv_layout=None if eiv_row is None else layout,
+            eiv_layout=None if dense_row is None else layout,
         )
         del A, b
         if terms is not None:
             done = terms[-1]
-            for target, value in zip(eiv_row, terms, strict=True):
+            for target, value in zip(dense_row, terms, strict=True):
                 target[part[done]] = value[done]
         theta[part] = qr.theta
         gram_inv_diag[part] = qr.gram_inv_diag
