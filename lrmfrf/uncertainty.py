@@ -481,9 +481,11 @@ def _window_solution(A: np.ndarray, good: np.ndarray):
     A)^+ = AG / norms`` (columnwise) and the hat matrix ``H = AG A_eq^H``.
     Windows not ``good`` get an identity Gram. From the Householder QR of
     ``A_eq`` (:func:`_solution_operator`), as the QR solver's own terms
-    (:func:`_dense_eiv_terms`): the inverse of the normal equations' Gram
-    matrix lost ``eps cond(A)^2``, up to 3e-5 relative in the std of the
-    ill-conditioned windows the compiled kernel leaves to QR on noisy data.
+    (:func:`_dense_eiv_terms`), with round-off ``eps cond(A)``: the inverse
+    of the Gram matrix it replaced lost ``eps cond(A)^2`` (the std of a noisy
+    N = 1.2e4 record moved by up to 1e-8 relative, median 2e-12; on
+    noise-free windows, where the truncated SVD takes over, it had given
+    leverages of -174..222).
     """
     norms = np.linalg.norm(A, axis=1)
     zero_column = ~(norms > np.finfo(float).tiny)
