@@ -517,14 +517,22 @@ def _solution_operator(A_eq, zero_column, good, Q, R_inv, svd_windows=None,
     QR solver's, whose ``R_inv`` there is not used). ``gram=False``: the
     first is None (not computed)."""
     p = A_eq.shape[2]
-    R_inv_h = np.ascontiguousarray(np.conj(np.swapaxes(R_inv, 1, 2)))
-    gram_inv = R_inv @ R_inv_h if gram else None
-    AG = Q @ R_inv_h
     size = np.sum(R_inv.real**2 + R_inv.imag**2, axis=(1, 2))
     with np.errstate(invalid="ignore"):
         certified = ~zero_column.any(axis=1) & (size * (RANK_TOL**2 * p) < 0.25)
     given = np.zeros(good.shape, dtype=bool) if svd_windows is None else svd_windows
     other = good & ~certified & ~given
+    by_qr = ~(given | other)
+    if by_qr.all():  # (usually, on noisy data: no copies)
+        R_inv_h = np.ascontiguousarray(np.conj(np.swapaxes(R_inv, 1, 2)))
+        return (R_inv @ R_inv_h if gram else None), Q @ R_inv_h
+    gram_inv = np.empty_like(R_inv) if gram else None
+    AG = np.empty_like(Q)
+    if by_qr.any():
+        R_inv_h = np.ascontiguousarray(np.conj(np.swapaxes(R_inv[by_qr], 1, 2)))
+        AG[by_qr] = Q[by_qr] @ R_inv_h
+        if gram:
+            gram_inv[by_qr] = R_inv[by_qr] @ R_inv_h
     for windows, factors in ((given, svd), (other, None)):
         if not windows.any():
             continue
@@ -578,12 +586,17 @@ def _dense_eiv_terms(theta, A_eq, norms, zero_column, well_posed, deficient, Q,
     nb = layout.n_bands
     lead = np.full((B, nb, nb), np.nan, dtype=complex)
     trace = np.full(B, np.nan)
-    sel = np.flatnonzero(well_posed)
-    if sel.size:
-        given = deficient[sel] if svd is not None else None
+    given = deficient if svd is not None else None
+    if well_posed.all():  # (no copies: every window of a noise-free record)
+        _, AG = _solution_operator(A_eq, zero_column, well_posed, Q, R_inv,
+                                   given, svd, gram=False)
+        lead, trace = _eiv_lead_trace(theta, A_eq, norms, AG, layout)
+    elif well_posed.any():
+        sel = np.flatnonzero(well_posed)
         _, AG = _solution_operator(A_eq[sel], zero_column[sel],
                                    np.ones(sel.size, dtype=bool), Q[sel],
-                                   R_inv[sel], given, svd, gram=False)
+                                   R_inv[sel], None if given is None else given[sel],
+                                   svd, gram=False)
         lead[sel], trace[sel] = _eiv_lead_trace(
             theta[sel], A_eq[sel], norms[sel], AG, layout)
     return lead, trace, well_posed.copy()
