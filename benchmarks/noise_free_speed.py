@@ -2,9 +2,12 @@
 
 Noise-free local dynamics need fewer poles than ``den_degree``: the
 denominator block of every window is rank-deficient, the compiled kernel's
-pivot check fails and the window goes to the dense numpy route, for the solve
-(:func:`lrmfrf.solvers.solve_local_least_squares`, the QR fallback) and for
-the errors-in-variables terms (:func:`lrmfrf.uncertainty._terms_of_chunk`).
+pivot check fails and the window goes to the dense numpy route: the solve
+(:func:`lrmfrf.solvers._solve_dense`, the QR fallback), which since stop38
+also computes the errors-in-variables terms of its well-posed windows from
+its own factors; the separate dense route of the terms
+(:func:`lrmfrf.uncertainty._terms_of_chunk`) is then only taken by windows
+left without them.
 This prints, per case (noise-free / 60 dB, ``std_method`` default "eiv" and
 "lemma2"), the wall time of each ``LRMBeyondNyquist().fit`` (after one
 warm-up fit), and how many windows went dense in the solve and in the eiv
@@ -14,15 +17,15 @@ that fail its pivot check, but on the numpy backend (small N, e.g.
 ``--n-samples 6000``, or ``LRMFRF_DISABLE_NUMBA=1``) every window; the
 printed backend says which.
 
-``--ab`` also alternates, on the noise-free default fit, the current
-``_pseudo_inverse_gram`` with its former three-operand einsum (``old``)
-and prints the ratio of the medians. ``--std`` only prints the noise-free
-default fit's ``frf_std_ / |frf_|`` over the bins (its size: round-off).
+``--std`` only prints the noise-free default fit's ``frf_std_ / |frf_|``
+over the bins (its size: round-off). (The ``--ab`` option of 2026-11-28, the
+pseudo-inverse's einsum against its matmul, went with that code in stop 38:
+the dense route of the terms forms ``A (A^H A)^+`` from the SVD's ``U`` now.)
 
 Run::
 
     python benchmarks/noise_free_speed.py [--n-samples 120000] [--repeats 3]
-        [--ab] [--std]
+        [--std]
 """
 
 from __future__ import annotations
@@ -59,20 +62,8 @@ def _counted(module, name, n_windows):
 
 # the solve's dense windows (A of shape (B, L, p)) and the eiv terms' (the
 # slow bins of the chunk)
-_counted(solvers, "solve_local_least_squares", lambda args: args[0].shape[0])
+_counted(solvers, "_solve_dense", lambda args: args[0].shape[0])
 _counted(uncertainty, "_terms_of_chunk", lambda args: len(args[4]))
-
-NEW_PINV = uncertainty._pseudo_inverse_gram
-
-
-def old_pinv(A_eq):
-    """``_pseudo_inverse_gram`` before the matmul (the einsum of the three
-    operands)."""
-    _, s, Vh = np.linalg.svd(A_eq, full_matrices=False)
-    keep = s > uncertainty.RANK_TOL * s[:, :1]
-    inv_s2 = np.where(keep, 1.0 / np.where(keep, s, 1.0) ** 2, 0.0)
-    return np.einsum("bki,bk,bkj->bij", Vh.conj(), inv_s2, Vh)
-
 
 def timed_fit(u, y, method):
     """Wall time of one fit, the counts of :data:`COUNTS`, and the backend
@@ -107,7 +98,6 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n-samples", type=int, default=120_000)
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--ab", action="store_true")
     parser.add_argument("--std", action="store_true",
                         help="only frf_std_ / |frf_| of the noise-free fit")
     args = parser.parse_args()
@@ -124,7 +114,7 @@ def main() -> None:
             runs = [timed_fit(e.u_h, e.y_l, method) for _ in range(args.repeats)]
             times = [t for t, _, _ in runs]
             counts, backend = runs[-1][1], runs[-1][2]
-            solve = counts.get("solve_local_least_squares", [0, 0.0])
+            solve = counts.get("_solve_dense", [0, 0.0])
             terms = counts.get("_terms_of_chunk", [0, 0.0])
             label = "noise-free" if snr is None else f"{snr:g} dB"
             where = "dense" if backend == "numba" else "numpy backend: all"
@@ -132,19 +122,6 @@ def main() -> None:
                   f"(all {np.round(times, 3)}); dense windows: solve "
                   f"{solve[0]} ({solve[1]:.2f} s), eiv terms ({where}) "
                   f"{terms[0]} ({terms[1]:.2f} s)", flush=True)
-    if args.ab:
-        e = paper_experiment(plant, rng=0, n_samples=args.n_samples, snr_db=None)
-        times = {"old": [], "new": []}
-        for _ in range(args.repeats):
-            for name, pinv in (("old", old_pinv), ("new", NEW_PINV)):
-                uncertainty._pseudo_inverse_gram = pinv
-                times[name].append(timed_fit(e.u_h, e.y_l, "eiv")[0])
-        uncertainty._pseudo_inverse_gram = NEW_PINV
-        a, b = np.median(times["old"]), np.median(times["new"])
-        print(f"A/B noise-free eiv, alternated: old einsum pinv {a:.3f} s, "
-              f"new matmul pinv {b:.3f} s, new/old {b / a:.2f}; all "
-              f"{np.round(times['old'], 3)} / {np.round(times['new'], 3)}",
-              flush=True)
 
 
 if __name__ == "__main__":

@@ -152,6 +152,24 @@ def solve_local_least_squares(
     -------
     LocalSolution
     """
+    return _solve_dense(
+        A, b, rank_tol=rank_tol, return_leverage=return_leverage,
+        rank_columns=rank_columns, cov_columns=cov_columns,
+    )[0]
+
+
+def _solve_dense(
+    A, b, *, rank_tol=RANK_TOL, return_leverage=False, rank_columns=None,
+    cov_columns=0, eiv_layout=None,
+):
+    """:func:`solve_local_least_squares` as ``(solution, terms)``.
+
+    With ``eiv_layout`` (the windows' :class:`~lrmfrf.windows.LocalModelLayout`)
+    ``terms`` are the errors-in-variables terms of the well-posed windows,
+    ``(lead, trace, done)`` as :func:`lrmfrf.uncertainty._terms_of_chunk`'s
+    ``eiv_lead`` and ``eiv_trace`` (``done``: the well-posed windows, where
+    they are computed), from this solve's factors
+    (:func:`lrmfrf.uncertainty._dense_eiv_terms`); else None."""
     norms = np.linalg.norm(A, axis=1)  # (B, p)
     zero_column = norms <= np.finfo(float).tiny
     safe_norms = np.where(zero_column, 1.0, norms)
@@ -174,8 +192,15 @@ def solve_local_least_squares(
     R = np.where(well_posed[:, None, None], R, np.eye(p))
     idx = np.arange(p)
     R[:, idx, idx] = np.where(diag == 0, 1.0, R[:, idx, idx])  # zero columns
-    R_inv = np.linalg.inv(R)
-    qhb = np.einsum("bij,bi->bj", Q.conj(), b)
+    if deficient.any():  # (the truncated SVD solves those: no inverse of R)
+        R_inv = np.empty_like(R)
+        R_inv[deficient] = np.eye(p)
+        R_inv[~deficient] = np.linalg.inv(R[~deficient])
+    else:
+        R_inv = np.linalg.inv(R)
+    # Q^H b as the conjugate of Q^T conj(b) (the same products and sums,
+    # without a conjugated copy of Q)
+    qhb = np.conj(np.einsum("bij,bi->bj", Q, b.conj()))
     z = np.einsum("bij,bj->bi", R_inv, qhb)
     gram_inv_eq = np.sum(np.abs(R_inv) ** 2, axis=2)
     c = cov_columns
@@ -184,9 +209,10 @@ def solve_local_least_squares(
         lead = R_inv[:, :c, :]
         lead_eq = np.einsum("bck,bdk->bcd", lead, lead.conj())
     leverage = np.sum(np.abs(Q) ** 2, axis=2) if return_leverage else None
+    svd = None
     if deficient.any():
         sel = np.flatnonzero(deficient)
-        z[sel], gram_inv_eq[sel], lev, lead_sel = _truncated_svd_solve(
+        z[sel], gram_inv_eq[sel], lev, lead_sel, svd = _truncated_svd_solve(
             A_eq[sel], b[sel], rank_tol, c
         )
         if leverage is not None:
@@ -194,6 +220,14 @@ def solve_local_least_squares(
         if c:
             lead_eq[sel] = lead_sel
     theta = np.where(zero_column, 0.0, z / safe_norms)
+    terms = None
+    if eiv_layout is not None:
+        from .uncertainty import _dense_eiv_terms
+
+        terms = _dense_eiv_terms(
+            theta, A_eq, safe_norms, zero_column, well_posed, deficient, Q,
+            R_inv, svd, eiv_layout,
+        )
     gram_inv_diag = gram_inv_eq / safe_norms**2
     lead_cov = None
     if c:
@@ -207,7 +241,9 @@ def solve_local_least_squares(
     rss[bad] = np.nan
     if leverage is not None:
         leverage[bad] = np.nan
-    return LocalSolution(theta, gram_inv_diag, rss, well_posed, leverage, lead_cov)
+    solution = LocalSolution(theta, gram_inv_diag, rss, well_posed, leverage,
+                             lead_cov)
+    return solution, terms
 
 
 def _truncated_svd_solve(A_eq, b, rank_tol, cov_columns=0):
@@ -227,6 +263,8 @@ def _truncated_svd_solve(A_eq, b, rank_tol, cov_columns=0):
     leverage : ndarray of shape (B, n_equations)
     lead_cov : ndarray of shape (B, c, c) or None
         ``(A_eq^H A_eq)^+`` at the leading ``c = cov_columns`` columns.
+    factors : tuple
+        ``(U, s, Vh)``: the thin SVD ``A_eq = U diag(s) Vh``.
     """
     U, s, Vh = np.linalg.svd(A_eq, full_matrices=False)
     keep = s > rank_tol * s[:, :1]
@@ -239,7 +277,7 @@ def _truncated_svd_solve(A_eq, b, rank_tol, cov_columns=0):
     if cov_columns:
         lead = Vh[:, :, :cov_columns]
         lead_cov = np.einsum("bkc,bk,bkd->bcd", lead.conj(), inv_s**2, lead)
-    return z, gram_inv_eq, leverage, lead_cov
+    return z, gram_inv_eq, leverage, lead_cov, (U, s, Vh)
 
 
 def noise_variance(rss: np.ndarray, dof: int) -> np.ndarray:
@@ -381,7 +419,9 @@ def _solve_normal_rows(
     for callers that want all rows at once without stacking them again:
     ``theta`` (n_rows, B, n_params), whose row ``o`` is ``solutions[o].theta``
     (the same memory, so later changes of one show in the other), and the
-    ``eiv_raw`` terms with a leading row axis (None without them)."""
+    ``eiv_raw`` terms with a leading row axis and, after them, the dense
+    terms of the windows re-solved by QR, ``(lead, trace, done)``
+    (:func:`_with_qr_fallback`; None without them)."""
     slow_bins = np.asarray(slow_bins, dtype=int)
     backend = resolve_backend(backend, slow_bins.size, layout.n_params)
     n_centre = layout.n_bands + layout.n_experiments
@@ -402,6 +442,9 @@ def _solve_normal_rows(
         )
         # the terms hold where the kernel's own solution is kept
         eiv_raw = eiv_raw + (solved[3].copy(),)
+        n_rows, B, nb = rows.shape[1], slow_bins.size, layout.n_bands
+        dense = (np.full((n_rows, B, nb, nb), np.nan, dtype=complex),
+                 np.full((n_rows, B), np.nan), np.zeros((n_rows, B), dtype=bool))
     elif backend == "numba":
         weights, col_base, tables, to_layout = _kernel_tables(layout)
         solved = _compiled.solve_windows(
@@ -421,27 +464,41 @@ def _solve_normal_rows(
             solved.append((windows.to_layout(theta), rss, centre_cov, fast))
         solved = [np.stack(parts) for parts in zip(*solved, strict=True)]
     order = _empty_windows(layout).order
+    # the windows re-solved by QR get their dense terms there (``dense``
+    # changed in place: a row's entries are views of its arrays)
     solutions = [
         _with_qr_fallback(
             U, rows[:, o], slow_bins, layout, order, *(part[o] for part in solved),
             n_centre=n_centre, cov_columns=cov_columns, rank_tol=rank_tol,
             rank_columns=rank_columns,
+            dense_row=None if eiv_raw is None else tuple(part[o] for part in dense),
         )
         for o in range(rows.shape[1])
     ]
     if eiv_raw is not None:
         for o, solution in enumerate(solutions):
             solution.eiv_raw = tuple(part[o] for part in eiv_raw)
+        eiv_raw = eiv_raw + (dense,)
     return solutions, solved[0], eiv_raw
 
 
 def _with_qr_fallback(
     U, Y, slow_bins, layout, order, theta, rss, centre_cov, fast, *, n_centre,
-    cov_columns, rank_tol, rank_columns,
+    cov_columns, rank_tol, rank_columns, dense_row=None,
 ) -> LocalSolution:
     """The :class:`LocalSolution` of one output row from the normal equations
     (``order``: internal column order, the window-centre columns last), with
-    the windows they could not solve re-solved by QR."""
+    the windows they could not solve re-solved by QR.
+
+    ``dense_row``: None, or the row's arrays ``(lead, trace, done)`` that
+    receive, in place, the errors-in-variables terms of the dense route
+    (:func:`lrmfrf.uncertainty._terms_of_chunk`'s ``eiv_lead`` and
+    ``eiv_trace``) of the re-solved windows that are well posed, computed
+    from this solve's factors (:func:`lrmfrf.uncertainty._dense_eiv_terms`),
+    ``done`` True there. Where the kernel pass of the terms fails on such a
+    window (every window of a noise-free record with an over-parameterised
+    denominator) they stand in for the dense route, which would build and
+    factor the window again."""
     c = cov_columns
     centre_var = np.real(np.diagonal(centre_cov, axis1=1, axis2=2))
     gram_inv_diag = np.full((slow_bins.size, layout.n_params), np.nan)
@@ -455,9 +512,15 @@ def _with_qr_fallback(
     for start in range(0, slow.size, chunk):  # bounded memory, however many
         part = slow[start : start + chunk]
         A, b = local_regressor(U, Y, slow_bins[part], layout)
-        qr = solve_local_least_squares(
-            A, b, rank_tol=rank_tol, rank_columns=rank_columns, cov_columns=c
+        qr, terms = _solve_dense(
+            A, b, rank_tol=rank_tol, rank_columns=rank_columns, cov_columns=c,
+            eiv_layout=None if dense_row is None else layout,
         )
+        del A, b
+        if terms is not None:
+            done = terms[-1]
+            for target, value in zip(dense_row, terms, strict=True):
+                target[part[done]] = value[done]
         theta[part] = qr.theta
         gram_inv_diag[part] = qr.gram_inv_diag
         rss[part] = qr.rss

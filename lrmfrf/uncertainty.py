@@ -129,10 +129,6 @@ ROBUST_SWITCH = 2.0
 #: ``"eiv"`` variance exceeds this multiple of its median (``nbr_c4``).
 ROBUST_NBR_THRESHOLD = 4.0
 
-#: Windows whose equilibrated ``G G^-1`` is further than this from the identity
-#: (max abs) are re-done with the pseudo-inverse of the truncated SVD.
-INVERSE_TOL = 1e-6
-
 #: The route of ``frf_std_`` by default (``benchmarks/generalisation_std.py``):
 #: the errors-in-variables sandwich, compiled and streamed (:func:`eiv_terms`,
 #: :func:`iter_calibrated_fits`).
@@ -494,50 +490,149 @@ def _window_solution(A: np.ndarray, good: np.ndarray):
     """The least-squares solution operator of each window's ``A``.
 
     Returns ``A_eq`` (the columns scaled to unit norm), ``norms`` (B, p),
-    ``gram_inv = (A_eq^H A_eq)^-1`` and ``AG = A_eq gram_inv``: ``S = A (A^H
-    A)^-1 = AG / norms`` (columnwise) and the hat matrix ``H = AG A_eq^H``.
-    Windows not ``good`` get an identity Gram.
+    ``gram_inv = (A_eq^H A_eq)^+`` and ``AG = A_eq gram_inv``: ``S = A (A^H
+    A)^+ = AG / norms`` (columnwise) and the hat matrix ``H = AG A_eq^H``.
+    Windows not ``good`` get an identity Gram. From the Householder QR of
+    ``A_eq`` (:func:`_solution_operator`), as the QR solver's own terms
+    (:func:`_dense_eiv_terms`), with round-off ``eps cond(A)``: the inverse
+    of the Gram matrix it replaced lost ``eps cond(A)^2`` (the std of a noisy
+    N = 1.2e4 record moved by up to 1e-8 relative, median 2e-12; on
+    noise-free windows, where the truncated SVD takes over, it had given
+    leverages of -174..222).
     """
-    # equilibrated normal equations (condition numbers of a few hundred, see
-    # docs/method.md): S = A (A^H A)^-1 at the centre columns, leverages
     norms = np.linalg.norm(A, axis=1)
     zero_column = ~(norms > np.finfo(float).tiny)
     norms = np.where(zero_column, 1.0, norms)
     A_eq = A / norms[:, None, :]
-    # contiguous operands: numpy's stacked matmul uses BLAS only for them
-    gram = np.ascontiguousarray(np.conj(np.swapaxes(A_eq, 1, 2))) @ A_eq
-    identity = np.eye(gram.shape[-1])
-    gram = np.where(good[:, None, None], gram, identity)
-    # an exactly-zero column (e.g. the denominator of a zero output) gets a
-    # zero coefficient from the solvers: a unit pivot that couples to nothing
-    gram = np.where(zero_column[:, :, None] | zero_column[:, None, :], 0.0, gram)
-    gram[zero_column[:, :, None] & np.eye(gram.shape[-1], dtype=bool)] = 1.0
-    try:
-        gram_inv = np.linalg.inv(gram)
-    except np.linalg.LinAlgError:  # some window exactly singular: all by SVD
-        gram_inv = np.full_like(gram, np.nan)
-    # windows the normal equations cannot invert accurately (a rank-deficient
-    # denominator block on noise-free data, which the solvers keep as well
-    # posed): the pseudo-inverse of the truncated SVD, as the QR solver does
+    Q, R = np.linalg.qr(A_eq)
+    p = A.shape[2]
+    R = np.where(good[:, None, None], R, np.eye(p))
+    idx = np.arange(p)
+    # an exactly-zero column: a unit pivot (the window is not certified below)
+    R[:, idx, idx] = np.where(R[:, idx, idx] == 0, 1.0, R[:, idx, idx])
+    R_inv = np.linalg.inv(R)
+    gram_inv, AG = _solution_operator(A_eq, zero_column, good, Q, R_inv)
+    return A_eq, norms, gram_inv, AG
+
+
+def _solution_operator(A_eq, zero_column, good, Q, R_inv, svd_windows=None,
+                       svd=None, *, gram=True):
+    """``(A_eq^H A_eq)^+`` and ``A_eq (A_eq^H A_eq)^+`` of each window from
+    the QR factors ``A_eq = Q R`` (``R_inv`` the inverse of ``R``).
+
+    Windows whose ``R`` certifies that the truncated SVD drops no singular
+    value, ``||R^-1||_F^2 RANK_TOL^2 p < 1/4`` (then ``s_min >= 1 /
+    ||R^-1||_F > 2 RANK_TOL sqrt(p) >= 2 RANK_TOL s_max``, the columns having
+    unit norm, none zero): ``R^-1 R^-H`` and ``Q R^-H``. The other ``good``
+    windows: the truncated SVD's ``V diag(1/s^2) V^H`` and ``U diag(1/s) V^H``
+    (singular values above ``RANK_TOL`` times the largest), with
+    ``svd = (U, s, Vh)`` given for the windows ``svd_windows`` (bool mask; the
+    QR solver's, whose ``R_inv`` there is not used). ``gram=False``: the
+    first is None (not computed)."""
+    p = A_eq.shape[2]
+    size = np.sum(R_inv.real**2 + R_inv.imag**2, axis=(1, 2))
     with np.errstate(invalid="ignore"):
-        error = np.max(np.abs(gram @ gram_inv - identity), axis=(1, 2))
-    poor = good & ~(error < INVERSE_TOL)
-    if poor.any():
-        gram_inv[poor] = _pseudo_inverse_gram(A_eq[poor])
-    return A_eq, norms, gram_inv, A_eq @ gram_inv
+        certified = ~zero_column.any(axis=1) & (size * (RANK_TOL**2 * p) < 0.25)
+    given = np.zeros(good.shape, dtype=bool) if svd_windows is None else svd_windows
+    other = good & ~certified & ~given
+    by_qr = ~(given | other)
+    if by_qr.all():  # (usually, on noisy data: no copies)
+        R_inv_h = np.ascontiguousarray(np.conj(np.swapaxes(R_inv, 1, 2)))
+        return (R_inv @ R_inv_h if gram else None), Q @ R_inv_h
+    gram_inv = np.empty_like(R_inv) if gram else None
+    AG = np.empty_like(Q)
+    if by_qr.any():
+        R_inv_h = np.ascontiguousarray(np.conj(np.swapaxes(R_inv[by_qr], 1, 2)))
+        AG[by_qr] = Q[by_qr] @ R_inv_h
+        if gram:
+            gram_inv[by_qr] = R_inv[by_qr] @ R_inv_h
+    for windows, factors in ((given, svd), (other, None)):
+        if not windows.any():
+            continue
+        if factors is None:
+            U, inv_s, Vh = _truncated_svd(A_eq[windows])
+        else:
+            U, s, Vh = factors
+            keep = s > RANK_TOL * s[:, :1]
+            inv_s = np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0)
+        if gram:
+            gram_inv[windows] = _pseudo_inverse_gram(inv_s, Vh)
+        AG[windows] = (U * inv_s[:, None, :]) @ Vh
+    return gram_inv, AG
 
 
-def _pseudo_inverse_gram(A_eq: np.ndarray) -> np.ndarray:
-    """``(A^H A)^+`` from the SVD of ``A``, singular values below ``RANK_TOL``
-    times the largest dropped (as :func:`lrmfrf.solvers.solve_local_least_squares`)."""
-    _, s, Vh = np.linalg.svd(A_eq, full_matrices=False)
+def _truncated_svd(A_eq: np.ndarray):
+    """``(U, inv_s, Vh)``: the thin SVD ``A_eq = U diag(s) Vh`` with ``inv_s``
+    ``1 / s`` at the singular values above ``RANK_TOL`` times the largest and 0
+    at the others (as :func:`lrmfrf.solvers.solve_local_least_squares`)."""
+    U, s, Vh = np.linalg.svd(A_eq, full_matrices=False)
     keep = s > RANK_TOL * s[:, :1]
-    inv_s2 = np.where(keep, 1.0 / np.where(keep, s, 1.0) ** 2, 0.0)
-    # V diag(inv_s2) V^H as a stacked matmul: the three-operand einsum does
-    # not use BLAS and was ~5x slower (every window of a noise-free record
-    # with an over-parameterised denominator comes here)
-    V_scaled = np.ascontiguousarray(np.conj(np.swapaxes(Vh, 1, 2)) * inv_s2[:, None, :])
+    return U, np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0), Vh
+
+
+def _pseudo_inverse_gram(inv_s: np.ndarray, Vh: np.ndarray) -> np.ndarray:
+    """``(A^H A)^+ = V diag(inv_s^2) V^H`` from :func:`_truncated_svd` of
+    ``A``."""
+    # as a stacked matmul: the three-operand einsum does not use BLAS and was
+    # ~5x slower
+    V_scaled = np.ascontiguousarray(np.conj(np.swapaxes(Vh, 1, 2)) * inv_s[:, None, :] ** 2)
     return V_scaled @ Vh
+
+
+def _dense_eiv_terms(theta, A_eq, norms, zero_column, well_posed, deficient, Q,
+                     R_inv, svd, layout):
+    """The dense route's errors-in-variables terms (:func:`_terms_of_chunk`'s
+    ``eiv_lead`` and ``eiv_trace``) of windows solved by the QR solver, from
+    its factors (:func:`lrmfrf.solvers._solve_dense`): the same solution
+    operator (:func:`_solution_operator`: ``Q R^-H`` where ``R`` certifies
+    full rank, else the truncated SVD, the solver's own for the windows it
+    solved by it) without building and factoring the windows again.
+
+    Returns
+    -------
+    tuple
+        ``(lead, trace, done)``: ``S^H diag(w) S``, ``sum_r w_r (1 - h_r)``
+        (within ``q min w .. q max w``) and ``done``, the well-posed windows
+        (NaN elsewhere).
+    """
+    B = theta.shape[0]
+    nb = layout.n_bands
+    lead = np.full((B, nb, nb), np.nan, dtype=complex)
+    trace = np.full(B, np.nan)
+    given = deficient if svd is not None else None
+    if well_posed.all():  # (no copies: every window of a noise-free record)
+        _, AG = _solution_operator(A_eq, zero_column, well_posed, Q, R_inv,
+                                   given, svd, gram=False)
+        lead, trace = _eiv_lead_trace(theta, A_eq, norms, AG, layout)
+    elif well_posed.any():
+        sel = np.flatnonzero(well_posed)
+        _, AG = _solution_operator(A_eq[sel], zero_column[sel],
+                                   np.ones(sel.size, dtype=bool), Q[sel],
+                                   R_inv[sel], None if given is None else given[sel],
+                                   svd, gram=False)
+        lead[sel], trace[sel] = _eiv_lead_trace(
+            theta[sel], A_eq[sel], norms[sel], AG, layout)
+    return lead, trace, well_posed.copy()
+
+
+def _eiv_lead_trace(theta, A_eq, norms, AG, layout):
+    """``eiv_lead`` and ``eiv_trace`` of :func:`_terms_of_chunk` from the
+    windows' solution operator ``AG`` (:func:`_window_solution`)."""
+    nb = layout.n_bands
+    S = np.ascontiguousarray(AG[:, :, :nb] / norms[:, None, :nb])
+    leverage = np.sum((AG * A_eq.conj()).real, axis=2)
+    e_weight = np.abs(_denominator_on_window(theta, layout)) ** 2
+    e_weight = np.tile(e_weight, (1, layout.n_experiments))  # experiment-major
+    S_h = np.ascontiguousarray(np.conj(np.swapaxes(S, 1, 2)))
+    eiv_lead = (S_h * e_weight[:, None, :]) @ S
+    eiv_trace = np.sum(e_weight * (1.0 - leverage), axis=1)
+    # 0 <= 1 - h_r <= 1 and sum_r (1 - h_r) = q bound the trace by q min w and
+    # q max w; round-off in 1 - h times a large |e|^2 can leave those bounds
+    # (even the sign) on noise-free, nearly interpolated windows
+    q = max(layout.dof, 0)
+    eiv_trace = np.clip(eiv_trace, q * e_weight.min(axis=1),
+                        q * e_weight.max(axis=1))
+    return eiv_lead, eiv_trace
 
 
 def _denominator_on_window(theta: np.ndarray, layout: LocalModelLayout) -> np.ndarray:
@@ -953,12 +1048,20 @@ def _eiv_terms_compiled(U, Y, layout, theta, slow_bins, raws=None, *,
     the solve of ``theta``; windows not ``valid`` there, i.e. re-solved by
     QR, are computed here again); without them every window is computed
     here. ``raw_rows``: the same terms with a leading row axis (the kernel's
-    own arrays, used and changed in place instead of stacked anew)."""
+    own arrays, used and changed in place instead of stacked anew), and
+    after them optionally the dense terms the QR solve computed for the
+    windows it re-solved, ``(lead, trace, done)`` with a leading row axis
+    (:func:`lrmfrf.solvers._with_qr_fallback`): windows that need the dense
+    route here take those instead of building and factoring the window
+    again (every window of a noise-free record with an over-parameterised
+    denominator)."""
     n_rows, B = theta.shape[:2]
     good = _all_last(np.isfinite(theta))
     nb = layout.n_bands
+    dense = None
     if raw_rows is not None:
-        lead, hw_trace, w_sum, w_min, w_max, valid = raw_rows
+        lead, hw_trace, w_sum, w_min, w_max, valid, *dense = raw_rows
+        dense = dense[0] if dense else None
         todo = good & ~valid
         ok = np.ones((n_rows, B), dtype=bool)
     elif raws is None or any(raw is None for raw in raws):
@@ -1000,10 +1103,16 @@ def _eiv_terms_compiled(U, Y, layout, theta, slow_bins, raws=None, *,
     # windows whose pivot check failed, or whose band block (S^H diag(w) S,
     # positive semi-definite) has a negative diagonal: round-off of a nearly
     # singular G (e.g. a rank-deficient denominator block on noise-free data)
-    # dominates there; the dense route checks its inverse and falls back to
-    # the pseudo-inverse
+    # dominates there; the dense route factors the regressor by QR (the
+    # truncated SVD where R does not certify full rank)
     negative = _any_last(np.real(np.diagonal(lead, axis1=-2, axis2=-1)) < 0)
     redo = good & (~ok | negative)
+    if dense is not None:  # the QR solve's, from its own factors
+        dense_lead, dense_trace, done = dense
+        ready = redo & done
+        lead[ready] = dense_lead[ready]
+        trace[ready] = dense_trace[ready]
+        redo &= ~done
     chunk = qr_chunk_size(layout)
     # (the section reads and sets the BLAS thread counts: only when needed)
     with _single_threaded_blas() if redo.any() else contextlib.nullcontext():

@@ -356,3 +356,41 @@ def test_fused_terms_recomputed_where_qr_resolves():
     np.testing.assert_array_equal(lead, want_lead, err_msg=CACHE_HINT)
     np.testing.assert_array_equal(trace, want_trace, err_msg=CACHE_HINT)
     assert np.all(np.isfinite(trace[1, redone]))
+
+
+def test_qr_solve_dense_terms_stand_in_for_the_dense_route(monkeypatch):
+    """The rows route (the estimators'): the QR solve hands the dense terms
+    of the windows it re-solves, from its own factors, with the kernel's
+    (``_solve_normal_rows``' ``eiv_raw`` then ``(lead, trace, done)``); where
+    the kernel pass fails on them they replace the dense route's building and
+    factoring the windows again, with the same terms: eiv_terms_rows on the
+    final parameters to round-off (bit for bit seen; 1e-12 allowed)."""
+    from lrmfrf.solvers import _solve_normal_rows
+
+    U, Y, layout = _mimo_spectra(2, 2, 2, 12)
+    Y = Y.copy()
+    Y[:, 1, 60:100] = 0.0
+    Y[:, 1, -99:-59] = 0.0
+    bins = np.arange(Y.shape[-1] // 2 + 1)
+    _, theta, raw_rows = _solve_normal_rows(
+        U, Y, bins, layout, backend="numba", eiv=True,
+        rank_columns=layout.n_system + layout.n_transient)
+    *kernel, valid, (dense_lead, dense_trace, done) = raw_rows
+    good = np.all(np.isfinite(theta), axis=-1)
+    np.testing.assert_array_equal(done, good & ~valid)
+    assert 10 <= done[1].sum() <= 40 and not done[0].any()
+    want_lead, want_trace = eiv_terms_rows(U, Y, layout, theta, bins,
+                                           backend="numba")
+    np.testing.assert_array_equal(np.isnan(dense_lead[done]), False)
+    import lrmfrf.uncertainty as uncertainty
+
+    def no_dense_route(*args):
+        raise AssertionError("the dense route built a window again")
+
+    monkeypatch.setattr(uncertainty, "_terms_of_chunk", no_dense_route)
+    lead, trace = _eiv_terms_compiled(U, Y, layout, theta, bins,
+                                      raw_rows=raw_rows)
+    scale = np.abs(want_lead).max(axis=(2, 3), keepdims=True)
+    np.testing.assert_allclose(lead / scale, want_lead / scale, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(trace, want_trace, rtol=1e-12)
+    assert np.all(np.isfinite(trace[1, done[1]]))

@@ -247,3 +247,104 @@ def test_dependent_trailing_columns_do_not_amplify_round_off():
                                rtol=0, atol=1e-12)
     assert np.all(np.isfinite(solution.gram_inv_diag[0, :lead]))
     assert np.abs(solution.theta[0, :lead]).max() < 1.0
+
+
+def _dense_eiv_reference(A, theta, layout, rank_tol):
+    """Errors-in-variables terms of one window from numpy's pseudo-inverse
+    (independent of the solver's factors): with ``A_eq`` the columns scaled
+    to unit norm, ``A_eq (A_eq^H A_eq)^+ = (A_eq^+)^H``; ``S`` its band
+    columns over the norms, ``h = diag(A_eq A_eq^+)``, ``w = |e(x_r)|^2``."""
+    from lrmfrf.windows import window_offsets
+
+    norms = np.linalg.norm(A, axis=0)
+    norms = np.where(norms > 0, norms, 1.0)
+    A_eq = A / norms
+    pinv = np.linalg.pinv(A_eq, rcond=rank_tol)  # drops s <= rank_tol * s_max
+    nb = layout.n_bands
+    S = pinv.conj().T[:, :nb] / norms[:nb]
+    h = np.real(np.diagonal(A_eq @ pinv))
+    _, x = window_offsets(layout.half_window)
+    e = 1.0 + x[:, None] ** np.arange(1, layout.den_degree + 1) @ theta[layout.den_columns]
+    w = np.abs(e) ** 2
+    return S.conj().T @ (w[:, None] * S), np.sum(w * h), w.sum(), w.min(), w.max()
+
+
+def test_dense_eiv_terms_match_the_pseudo_inverse_per_window():
+    """The errors-in-variables terms the QR solver computes from its own
+    factors (every window of a noise-free record with an over-parameterised
+    denominator comes here) are numpy's pseudo-inverse's, window by window,
+    in one batch of complex windows taking each route: full rank (``Q R^-H``),
+    a denominator column exactly dependent on the input columns (solved by
+    the truncated SVD, whose factors the terms share), a nearly dependent one
+    that the solve keeps (its ``R`` pivot 1e-11 is above the solve's
+    ``rank_tol`` here) but the terms' ``RANK_TOL`` drops (a new SVD), and a
+    band with no excitation (not identifiable: not well posed, no terms,
+    ``theta`` NaN). Observed agreement ~1e-15; 1e-10 relative allowed."""
+    from lrmfrf.solvers import RANK_TOL, _solve_dense
+
+    layout = LocalModelLayout(F=2, half_window=6, num_degree=1,
+                              transient_degree=1, den_degree=2)
+    rng = np.random.default_rng(11)
+    L, p = layout.n_equations, layout.n_params
+    A = rng.standard_normal((4, L, p)) + 1j * rng.standard_normal((4, L, p))
+    b = rng.standard_normal((4, L)) + 1j * rng.standard_normal((4, L))
+    den = np.arange(p)[layout.den_columns]
+    A[1, :, den[0]] = 0.5 * A[1, :, 0] - (0.3 - 0.2j) * A[1, :, 3]
+    A[2, :, den[1]] = A[2, :, 1] + 1e-11 * A[2, :, den[1]]
+    A[3, :, 0] = 0.0  # the first band is not excited in this window
+    solution, terms = _solve_dense(A, b, rank_tol=1e-13,
+                                   rank_columns=layout.n_system + layout.n_transient,
+                                   eiv_layout=layout)
+    np.testing.assert_array_equal(solution.well_posed, [True, True, True, False])
+    *values, done = terms
+    np.testing.assert_array_equal(done, solution.well_posed)
+    q = layout.dof
+    for k in range(3):
+        lead, hw_trace, w_sum, w_min, w_max = _dense_eiv_reference(
+            A[k], solution.theta[k], layout, RANK_TOL)
+        scale = np.abs(lead).max()
+        np.testing.assert_allclose(values[0][k] / scale, lead / scale, rtol=0,
+                                   atol=1e-10)
+        trace = np.clip(w_sum - hw_trace, q * w_min, q * w_max)
+        np.testing.assert_allclose(values[1][k], trace, rtol=1e-10)
+    assert np.isnan(solution.theta[3]).all()
+    assert all(np.isnan(value[3]).all() for value in values)
+    # the routes taken: the window solved by the truncated SVD has the
+    # minimum-norm parameters, numpy's lstsq's with the same cutoff
+    norms = np.linalg.norm(A[1], axis=0)
+    reference = np.linalg.lstsq(A[1] / norms, b[1], rcond=1e-13)[0] / norms
+    np.testing.assert_allclose(solution.theta[1], reference, rtol=1e-10)
+    # and the kept nearly dependent column: a singular value of A_eq below
+    # RANK_TOL times the largest, which the terms drop
+    A_eq = A[2] / np.linalg.norm(A[2], axis=0)
+    s = np.linalg.svd(A_eq, compute_uv=False)
+    assert s[-1] < 0.1 * RANK_TOL * s[0] < s[-2]
+
+
+def test_dense_terms_leverages_of_noise_free_windows_are_a_projection():
+    """Noise-free windows with an over-parameterised denominator: the dense
+    route of the std terms takes the truncated SVD's pseudo-inverse (the
+    normal equations cannot invert their Gram matrix). Its hat matrix is the
+    projection on the kept singular vectors: leverages in [0, 1] summing to
+    the rank. ``A_eq`` times the pseudo-inverse of the Gram matrix multiplied
+    round-off by ``1/s^2`` and gave leverages of -174..222 here (sums off by
+    up to 1230); ``U diag(1/s) V^H`` gives 1.3e-7 (the windows the normal
+    equations do invert, to cond ~1e10), 1e-5 allowed."""
+    from lrmfrf.local_models import dft
+    from lrmfrf.paper import paper_experiment
+    from lrmfrf.plants import wafer_stage
+    from lrmfrf.uncertainty import RANK_TOL, _window_solution
+    from lrmfrf.windows import local_regressor
+
+    e = paper_experiment(wafer_stage().G_y4, rng=0, n_samples=12000, snr_db=None)
+    layout = LocalModelLayout(F=3, half_window=18, num_degree=4,
+                              transient_degree=4, den_degree=7)
+    bins = np.arange(100, 1900, 9)
+    A, _ = local_regressor(dft(e.u_h)[None], dft(e.y_l)[None], bins, layout)
+    A_eq, _, _, AG = _window_solution(A, np.ones(bins.size, dtype=bool))
+    leverage = np.sum((AG * A_eq.conj()).real, axis=2)
+    s = np.linalg.svd(A_eq, compute_uv=False)
+    rank = np.sum(s > RANK_TOL * s[:, :1], axis=1)
+    assert np.any(rank < layout.n_params)  # (the windows of the case)
+    assert leverage.min() > -1e-5 and leverage.max() < 1 + 1e-5
+    np.testing.assert_allclose(leverage.sum(axis=1), rank, rtol=0, atol=1e-5)
