@@ -575,7 +575,8 @@ def _pseudo_inverse_gram(inv_s: np.ndarray, Vh: np.ndarray) -> np.ndarray:
     ``A``."""
     # as a stacked matmul: the three-operand einsum does not use BLAS and was
     # ~5x slower
-    V_scaled = np.ascontiguousarray(np.conj(np.swapaxes(Vh, 1, 2)) * inv_s[:, None, :] ** 2)
+    V_scaled = np.ascontiguousarray(
+        np.conj(np.swapaxes(Vh, 1, 2)) * inv_s[:, None, :] ** 2)
     return V_scaled @ Vh
 
 

@@ -241,7 +241,7 @@ def test_pseudo_inverse_gram_is_that_of_the_truncated_svd(rank):
     slower) is ``A^+ A^+^H = (A^H A)^+`` of complex windows, full rank and
     rank-deficient (rank 6 of 27 columns, as a noise-free record's common
     factor), and Hermitian: the Moore-Penrose conditions on the Gram."""
-    from lrmfrf.uncertainty import _pseudo_inverse_gram
+    from lrmfrf.uncertainty import _pseudo_inverse_gram, _truncated_svd
 
     rng = np.random.default_rng(3)
 
@@ -251,7 +251,8 @@ def test_pseudo_inverse_gram_is_that_of_the_truncated_svd(rank):
     # (full rank: a plain random A; a square random factor can be badly
     # conditioned and would test the conditioning, not the formula)
     A = cn(5, 40, 27) if rank == 27 else cn(5, 40, rank) @ cn(5, rank, 27)
-    ours = _pseudo_inverse_gram(A)
+    _, inv_s, Vh = _truncated_svd(A)
+    ours = _pseudo_inverse_gram(inv_s, Vh)
     A_plus = np.linalg.pinv(A, rcond=1e-10)
     reference = A_plus @ np.conj(np.swapaxes(A_plus, 1, 2))
     scale = np.abs(reference).max()
